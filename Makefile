@@ -1,0 +1,39 @@
+# edgecal: the two commands of the README.
+#   make demo   render data, detect, calibrate, stream pose from a replay
+#   make test   the test suite
+# Both create (or reuse) the virtualenv .venv and install what they need, Debian packages included.
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+# Debian packages the tests need (the Aravis fake camera, libdc1394, systemd-analyze, PyGObject's build deps).
+SYSTEM_PACKAGES ?=
+
+.PHONY: demo test bench system-deps clean
+
+$(VENV)/.installed: pyproject.toml
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "edgecal needs Python 3.10 or newer")'
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $@
+
+system-deps:
+	@missing=""; for p in $(SYSTEM_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+
+demo: $(VENV)/.installed
+	$(VENV)/bin/edgecal demo --out out/demo
+
+test: system-deps $(VENV)/.installed
+	$(PY) -m pytest -q
+
+bench: $(VENV)/.installed
+	$(PY) bench/detect.py
+
+clean:
+	rm -rf $(VENV) out build *.egg-info

@@ -1,0 +1,1 @@
+"""YAML defaults shipped with edgecal (detector thresholds, targets, rigs, the daemon)."""

@@ -1,0 +1,1 @@
+"""Target definitions shipped with edgecal."""

@@ -1,0 +1,59 @@
+"""The ``edgecal`` command line: one sub-command per module in edgecal/commands/.
+
+Each command module provides ``add_parser(subparsers) -> argparse.ArgumentParser`` and
+``run(args) -> int``. User errors (EdgecalError) become one line on stderr and a non-zero exit code;
+only a bug in edgecal itself shows a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from typing import Sequence
+
+from edgecal.errors import EdgecalError
+
+# Order here is the order in `edgecal --help`.
+COMMAND_MODULES = (
+    "edgecal.commands.detect",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every sub-command registered."""
+    parser = argparse.ArgumentParser(
+        prog="edgecal",
+        description="Chessboard detection, one-shot stereo calibration and live robot pose.")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        module = importlib.import_module(name)
+        p = module.add_parser(sub)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``edgecal`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        return int(args._run(args) or 0)
+    except EdgecalError as exc:
+        print(f"edgecal: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("edgecal: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        # `edgecal detect ... | head` closes the pipe early: not an error.
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

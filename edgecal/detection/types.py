@@ -1,0 +1,53 @@
+"""What the detector returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Detection:
+    """One board found in an image.
+
+    corners: (N, 2) float64 pixel positions, OpenCV convention (integer = pixel centre).
+    ids:     (N, 2) int64 (col, row) of each corner on the board ``board``, matching the target.
+    quality: (N,) float64 per-corner figure in [0, 1] (1 = a clean saddle; see docs/detector.md).
+    grid:    (cols, rows) of the grid that was found (equals the board's size when complete).
+    """
+
+    board: str
+    corners: np.ndarray
+    ids: np.ndarray
+    quality: np.ndarray
+    grid: tuple[int, int]
+    complete: bool = True
+
+    def as_json(self) -> dict:
+        """The JSON form printed by ``edgecal detect``."""
+        return {
+            "name": self.board,
+            "corners": [[round(float(x), 4), round(float(y), 4)] for x, y in self.corners],
+            "ids": [[int(c), int(r)] for c, r in self.ids],
+        }
+
+
+@dataclass
+class DetectionDebug:
+    """Intermediate results of one detection, for overlays and debugging.
+
+    candidates:  (M, 2) minimum-eigenvalue candidates.
+    accepted:    (K, 2) points that passed the probe's angle and sign tests (sub-pixel).
+    directions:  (K, 4) border directions in radians at each accepted point.
+    spacing:     (K,) estimated local square size in pixels at each accepted point.
+    detections:  the final boards.
+    notes:       human-readable remarks, e.g. a grid of another size than the target's.
+    """
+
+    candidates: np.ndarray
+    accepted: np.ndarray
+    directions: np.ndarray
+    spacing: np.ndarray
+    detections: list[Detection] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)

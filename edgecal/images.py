@@ -1,0 +1,69 @@
+"""Loading and checking images: every failure is an InputError that names the file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from edgecal.errors import InputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+
+
+def as_grey(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """A contiguous uint8 grey view/copy of ``image`` (uint8 grey, BGR or BGRA).
+
+    uint16 images are scaled to 8 bits by their actual range; any other dtype or shape is an error.
+    """
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"{name}: expected a numpy array, got {type(image).__name__}")
+    if image.size == 0:
+        raise InputError(f"{name}: the image is empty")
+    if image.dtype == np.uint16:
+        hi = int(image.max())
+        shift = max(0, hi.bit_length() - 8)
+        image = (image >> shift).astype(np.uint8)
+    if image.dtype != np.uint8:
+        raise InputError(f"{name}: expected a uint8 (or uint16) image, got dtype {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    elif image.ndim != 2:
+        raise InputError(f"{name}: expected a grey (H, W) or colour (H, W, 3) image, got shape {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def load_grey(path: str | Path) -> np.ndarray:
+    """Read an image file as uint8 grey; InputError naming the file if it is missing or unreadable."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: image file not found")
+    if not p.is_file():
+        raise InputError(f"{p}: not a file")
+    data = np.fromfile(str(p), dtype=np.uint8)
+    if data.size == 0:
+        raise InputError(f"{p}: the file is empty")
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError(f"{p}: not a readable image (PNG, JPEG, BMP, TIFF, PGM ...)")
+    return as_grey(image, str(p))
+
+
+def expand_image_args(paths: list[str]) -> list[Path]:
+    """Expand folders into their image files (sorted by name); files are kept in the order given."""
+    out: list[Path] = []
+    for item in paths:
+        p = Path(item)
+        if p.is_dir():
+            files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+            if not files:
+                raise InputError(f"{p}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
+            out.extend(files)
+        else:
+            out.append(p)
+    return out

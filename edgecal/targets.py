@@ -1,0 +1,160 @@
+"""Calibration and pose targets: one or more planar chessboards placed in a target frame.
+
+A target file (configs/targets/*.yaml) looks like::
+
+    name: box-100mm
+    boards:
+      - name: top
+        inner_corners: [4, 5]      # cols x rows of inner corners
+        square_mm: 14.0
+        origin_mm: [0, 0, 100]     # 3-D position of inner corner (col 0, row 0) in the target frame
+        x_axis: [1, 0, 0]          # unit direction of increasing col
+        y_axis: [0, 1, 0]          # unit direction of increasing row
+
+A single flat board may leave out origin_mm/x_axis/y_axis (the board frame is the target frame).
+Board-frame object points are (col * square, row * square, 0). The square on the -x,-y side of
+corner (0, 0) is black; see docs/conventions.md.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from edgecal.config import ConfigReader, load_yaml_mapping
+from edgecal.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Board:
+    """One planar chessboard: ``cols`` x ``rows`` inner corners, placed in the target frame (mm)."""
+
+    name: str
+    cols: int
+    rows: int
+    square_mm: float
+    origin_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    x_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    y_axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+
+    @property
+    def n_corners(self) -> int:
+        """Number of inner corners."""
+        return self.cols * self.rows
+
+    def ids(self) -> np.ndarray:
+        """(col, row) of every corner, row-major (row 0 first), shape (N, 2) int."""
+        rows, cols = np.mgrid[0:self.rows, 0:self.cols]
+        return np.stack([cols.ravel(), rows.ravel()], axis=1).astype(np.int64)
+
+    def board_points_mm(self, ids: np.ndarray | None = None) -> np.ndarray:
+        """Board-frame points (col*s, row*s, 0) in mm for ``ids`` (default: all, row-major)."""
+        ids = self.ids() if ids is None else np.asarray(ids, dtype=np.int64).reshape(-1, 2)
+        pts = np.zeros((len(ids), 3))
+        pts[:, :2] = ids * self.square_mm
+        return pts
+
+    def target_points_mm(self, ids: np.ndarray | None = None) -> np.ndarray:
+        """Target-frame points in mm for ``ids`` (default: all, row-major)."""
+        ids = self.ids() if ids is None else np.asarray(ids, dtype=np.int64).reshape(-1, 2)
+        s = self.square_mm
+        return (self.origin_mm[None, :] + (ids[:, :1] * s) * self.x_axis[None, :]
+                + (ids[:, 1:2] * s) * self.y_axis[None, :])
+
+    @property
+    def normal(self) -> np.ndarray:
+        """Unit normal x_axis × y_axis (right-handed board frame)."""
+        return np.cross(self.x_axis, self.y_axis)
+
+
+@dataclass(frozen=True)
+class Target:
+    """A named set of boards; ``source`` is the file it came from (for messages)."""
+
+    name: str
+    boards: tuple[Board, ...]
+    source: str = ""
+
+    def board(self, name: str) -> Board:
+        """The board called ``name``."""
+        for b in self.boards:
+            if b.name == name:
+                return b
+        raise KeyError(name)
+
+    @property
+    def is_planar(self) -> bool:
+        """True when every board lies in one plane (no non-coplanar calibration possible)."""
+        pts = np.concatenate([b.target_points_mm() for b in self.boards])
+        centred = pts - pts.mean(axis=0)
+        return bool(np.linalg.svd(centred, compute_uv=False)[-1] < 1e-6 * max(1.0, np.abs(centred).max()))
+
+
+_BOARD_FIELDS = ("name", "inner_corners", "square_mm", "origin_mm", "x_axis", "y_axis")
+
+
+def _unit_check(v: list[float]) -> str | None:
+    n = float(np.linalg.norm(v))
+    if abs(n - 1.0) > 1e-3:
+        return f"must be a unit vector (its length is {n:.4f})"
+    return None
+
+
+def _read_board(r: ConfigReader, index: int) -> Board:
+    r.reject_unknown(_BOARD_FIELDS)
+    name = r.string("name", f"board{index}")
+    cr = r.raw("inner_corners")
+    if (not isinstance(cr, (list, tuple)) or len(cr) != 2
+            or any(isinstance(v, bool) or not isinstance(v, int) for v in cr)):
+        raise r.fail("inner_corners", f"must be [cols, rows], two whole numbers (got {cr!r})")
+    cols, rows = int(cr[0]), int(cr[1])
+    if cols < 2 or rows < 2:
+        raise r.fail("inner_corners", f"needs at least 2 x 2 inner corners (got {cols} x {rows})")
+    square = r.number("square_mm", positive=True)
+    origin = np.array(r.vector("origin_mm", 3, [0.0, 0.0, 0.0]))
+    x_axis = np.array(r.vector("x_axis", 3, [1.0, 0.0, 0.0], check=_unit_check))
+    y_axis = np.array(r.vector("y_axis", 3, [0.0, 1.0, 0.0], check=_unit_check))
+    if abs(float(x_axis @ y_axis)) > 1e-3:
+        raise r.fail("y_axis", "must be perpendicular to x_axis")
+    return Board(name, cols, rows, square, origin, x_axis, y_axis)
+
+
+def target_from_mapping(data: dict, source: str) -> Target:
+    """Build and validate a Target from a parsed YAML mapping; ``source`` names it in messages."""
+    r = ConfigReader(data, source)
+    r.reject_unknown(("name", "boards", "description"))
+    name = r.string("name", Path(source).stem or "target")
+    boards = tuple(_read_board(br, i) for i, br in enumerate(r.sections("boards")))
+    names = [b.name for b in boards]
+    for i, n in enumerate(names):
+        if names.index(n) != i:
+            raise ConfigError(f"{source}: field 'boards[{i}].name' repeats the board name {n!r}")
+    return Target(name, boards, source)
+
+
+def load_target(path: str | Path) -> Target:
+    """Load and validate a target YAML file (raises ConfigError naming the field)."""
+    return target_from_mapping(load_yaml_mapping(path), str(path))
+
+
+_BOARD_SPEC = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
+
+
+def planar_target(cols: int, rows: int, square_mm: float = 1.0, name: str | None = None) -> Target:
+    """A target of one flat board with ``cols`` x ``rows`` inner corners."""
+    label = name or f"chessboard-{cols}x{rows}"
+    return Target(label, (Board(label, cols, rows, float(square_mm)),), source=f"--board {cols}x{rows}")
+
+
+def parse_board_spec(spec: str, square_mm: float = 1.0) -> Target:
+    """Parse the command-line shorthand ``CxR`` (inner corners) into a planar target."""
+    m = _BOARD_SPEC.match(spec)
+    if not m:
+        raise ConfigError(f"--board {spec!r}: expected COLSxROWS of inner corners, e.g. 9x6")
+    cols, rows = int(m.group(1)), int(m.group(2))
+    if cols < 2 or rows < 2:
+        raise ConfigError(f"--board {spec!r}: needs at least 2x2 inner corners")
+    return planar_target(cols, rows, square_mm)
