@@ -1,0 +1,138 @@
+"""From the detections of one stereo frame to T_rig_robot: match, triangulate, fit, refine, check."""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from edgecal.detection.types import Detection
+from edgecal.pose.refine import CameraView, pose_covariance, refine_pose
+from edgecal.pose.rigid import fit_rigid, is_degenerate
+from edgecal.pose.triangulate import triangulate_pixels
+from edgecal.pose.types import Pose, PoseSettings, StereoCameras
+from edgecal.targets import Target
+
+
+def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[str, int, int], np.ndarray]:
+    """(board, col, row) -> pixel (2,) for every detected corner of a board the target knows."""
+    names = {b.name for b in target.boards}
+    table: dict[tuple[str, int, int], np.ndarray] = {}
+    for det in detections:
+        if det.board not in names:
+            continue
+        for (c, r), px in zip(np.asarray(det.ids).reshape(-1, 2), np.asarray(det.corners).reshape(-1, 2)):
+            table[(det.board, int(c), int(r))] = np.asarray(px, dtype=np.float64)
+    return table
+
+
+def robot_points_m(target: Target, keys: Sequence[tuple[str, int, int]]) -> np.ndarray:
+    """Robot-frame (target-frame) positions in metres of corners named (board, col, row)."""
+    if not keys:
+        return np.zeros((0, 3))
+    out = np.empty((len(keys), 3))
+    by_board: dict[str, list[int]] = {}
+    for i, (b, _, _) in enumerate(keys):
+        by_board.setdefault(b, []).append(i)
+    for b, idx in by_board.items():
+        ids = np.array([[keys[i][1], keys[i][2]] for i in idx], dtype=np.int64)
+        out[idx] = target.board(b).target_points_mm(ids) / 1000.0
+    return out
+
+
+def _views(cams: StereoCameras, target: Target, left: dict, right: dict) -> tuple[CameraView, CameraView]:
+    kl, kr = sorted(left), sorted(right)
+    rvec_rl, _ = cv2.Rodrigues(np.asarray(cams.R, dtype=np.float64))
+    vl = CameraView(cams.camera_matrix_left, cams.dist_coeffs_left, np.zeros(3), np.zeros(3),
+                    robot_points_m(target, kl), np.array([left[k] for k in kl]).reshape(-1, 2))
+    vr = CameraView(cams.camera_matrix_right, cams.dist_coeffs_right, rvec_rl.ravel(),
+                    np.asarray(cams.T, dtype=np.float64).ravel(), robot_points_m(target, kr),
+                    np.array([right[k] for k in kr]).reshape(-1, 2))
+    return vl, vr
+
+
+def _pnp(view: CameraView) -> tuple[np.ndarray, np.ndarray] | None:
+    """T_cam_robot from one camera's corners (SQPnP handles planar and non-planar layouts)."""
+    if view.n < 4:
+        return None
+    ok, rvec, tvec = cv2.solvePnP(view.object_points_m, view.image_points_px, view.camera_matrix,
+                                  view.dist_coeffs, flags=cv2.SOLVEPNP_SQPNP)
+    if not ok:
+        return None
+    R, _ = cv2.Rodrigues(rvec)
+    return R, tvec.ravel()
+
+
+def initial_pose(cams: StereoCameras, target: Target, left: dict, right: dict, vl: CameraView, vr: CameraView,
+                 settings: PoseSettings) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """A starting T_rig_robot: triangulation + rigid fit when enough corners are shared, else PnP."""
+    both = sorted(set(left) & set(right))
+    if len(both) >= 4:
+        X_rig = triangulate_pixels(cams, np.array([left[k] for k in both]), np.array([right[k] for k in both]),
+                                   optimal=settings.triangulation == "optimal")
+        X_robot = robot_points_m(target, both)
+        if np.all(np.isfinite(X_rig)) and not is_degenerate(X_robot):
+            R, t = fit_rigid(X_robot, X_rig)
+            return R, t, "stereo"
+    best = max((vl, vr), key=lambda v: v.n)
+    sol = _pnp(best)
+    if sol is None:
+        return None
+    R_c, t_c = sol
+    if best is vl:
+        return R_c, t_c, "mono-left"
+    # T_rig_robot = T_right_left^-1 * T_right_robot
+    Rrl = np.asarray(cams.R, dtype=np.float64)
+    Trl = np.asarray(cams.T, dtype=np.float64).ravel()
+    return Rrl.T @ R_c, Rrl.T @ (t_c - Trl), "mono-right"
+
+
+def check_quality(pose: Pose, settings: PoseSettings) -> Pose:
+    """Mark ``pose`` invalid, naming the first bound it fails; return it."""
+    b = settings.bounds
+    problems = []
+    if pose.n_corners < b.min_corners:
+        problems.append(f"only {pose.n_corners} corners (min_corners {b.min_corners})")
+    if not np.isfinite(pose.rms_px) or pose.rms_px > b.max_rms_px:
+        problems.append(f"reprojection RMS {pose.rms_px:.3g} px > max_rms_px {b.max_rms_px}")
+    if not np.all(np.isfinite(pose.covariance)):
+        problems.append("covariance undetermined (degenerate corner layout)")
+    else:
+        if pose.position_std_mm > b.max_position_std_mm:
+            problems.append(f"position std {pose.position_std_mm:.3g} mm > max_position_std_mm "
+                            f"{b.max_position_std_mm}")
+        if pose.rotation_std_deg > b.max_rotation_std_deg:
+            problems.append(f"rotation std {pose.rotation_std_deg:.3g} deg > max_rotation_std_deg "
+                            f"{b.max_rotation_std_deg}")
+    if problems:
+        pose.valid = False
+        pose.reason = "; ".join(problems)
+    return pose
+
+
+def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoCameras,
+                  settings: PoseSettings = PoseSettings()) -> Pose:
+    """T_rig_robot from the detections of the left and right images of one stereo frame.
+
+    Corners seen by both cameras are triangulated and fitted rigidly for a start; with fewer than four
+    shared corners the camera that saw more is used alone (PnP). The pose is then refined over every
+    corner either camera saw, its covariance computed, and the quality bounds applied.
+    """
+    tl, tr = corner_table(left, target), corner_table(right, target)
+    counts = dict(n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)))
+    if not tl and not tr:
+        return Pose.invalid("no board detected", **counts)
+    vl, vr = _views(cams, target, tl, tr)
+    start = initial_pose(cams, target, tl, tr, vl, vr, settings)
+    if start is None:
+        return Pose.invalid(f"too few corners for a pose ({len(tl)} left, {len(tr)} right)", **counts)
+    R0, t0, mode = start
+    # Mono: the other camera's few corners (fewer than 4 shared) still help, but only if they agree.
+    views = [v for v in (vl, vr) if v.n > 0]
+    R, t, res, J = refine_pose(R0, t0, views)
+    rms = float(np.sqrt(np.mean(res ** 2))) if len(res) else float("nan")
+    cov = pose_covariance(J, res, settings.covariance_scale, settings.corner_noise_px)
+    boards = tuple(sorted({k[0] for k in tl} | {k[0] for k in tr}))
+    pose = Pose(R, t, cov, mode, True, "", rms, boards=boards, **counts)
+    return check_quality(pose, settings)

@@ -1,0 +1,106 @@
+"""What the pose estimator takes and returns: the stereo cameras, the settings and the pose."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+@dataclass(frozen=True)
+class StereoCameras:
+    """A calibrated stereo pair (OpenCV model). ``R``, ``T`` map left to right: X_right = R X_left + T (m)."""
+
+    camera_matrix_left: np.ndarray
+    dist_coeffs_left: np.ndarray
+    camera_matrix_right: np.ndarray
+    dist_coeffs_right: np.ndarray
+    R: np.ndarray
+    T: np.ndarray
+    image_size: tuple[int, int] = (0, 0)     # [width, height]
+
+    @property
+    def baseline_m(self) -> float:
+        """Distance between the two optical centres."""
+        return float(np.linalg.norm(self.T))
+
+
+@dataclass(frozen=True)
+class QualityBounds:
+    """A pose outside any of these bounds is published as invalid, with the bound named in the reason."""
+
+    min_corners: int = 8                  # corners used by the fit (both cameras counted once each)
+    max_rms_px: float = 1.0               # reprojection RMS over all residuals
+    max_position_std_mm: float = 5.0      # sqrt of the largest eigenvalue of the position covariance
+    max_rotation_std_deg: float = 1.0     # same for the rotation block
+
+
+@dataclass(frozen=True)
+class PoseSettings:
+    """How the pose is computed.
+
+    triangulation:    "optimal" (Hartley-Sturm correction of each match, then linear) or "linear".
+    covariance_scale: how the 6x6 covariance (J^T J)^-1 is scaled:
+                      "residual" by the estimated corner noise sigma^2 = SSR / (m - 6);
+                      "noise"    by the configured ``corner_noise_px`` squared;
+                      "max"      by the larger of the two (default: a clean render's tiny residual must
+                                 not make the pose look more certain than the detector really is).
+    corner_noise_px:  1-sigma corner localisation noise of the detector, in pixels.
+    """
+
+    triangulation: str = "optimal"
+    covariance_scale: str = "max"
+    corner_noise_px: float = 0.1
+    bounds: QualityBounds = field(default_factory=QualityBounds)
+
+
+@dataclass
+class Pose:
+    """T_rig_robot from one stereo frame.
+
+    R, t_m:      rotation and translation (metres) mapping robot-frame points to the rig (left camera) frame.
+    covariance:  6x6, order [x, y, z, rx, ry, rz] in metres and radians; the rotation part is a small
+                 rotation about the rig's axes applied on the left (R_true = exp([d]x) R), as ROS does.
+    mode:        "stereo", "mono-left", "mono-right" or "none".
+    valid:       False when the pose failed a quality bound (or could not be computed); ``reason`` says why.
+    """
+
+    R: np.ndarray
+    t_m: np.ndarray
+    covariance: np.ndarray
+    mode: str
+    valid: bool
+    reason: str = ""
+    rms_px: float = float("nan")
+    n_left: int = 0
+    n_right: int = 0
+    n_both: int = 0
+    boards: tuple[str, ...] = ()
+
+    @property
+    def quaternion_xyzw(self) -> np.ndarray:
+        """Unit quaternion (x, y, z, w) with w >= 0."""
+        q = Rotation.from_matrix(self.R).as_quat()
+        return -q if q[3] < 0 else q
+
+    @property
+    def n_corners(self) -> int:
+        """Corner observations used by the fit (a corner seen by both cameras counts twice)."""
+        return self.n_left + self.n_right
+
+    @property
+    def position_std_mm(self) -> float:
+        """1-sigma position uncertainty along the worst direction, in millimetres."""
+        return 1000.0 * float(np.sqrt(max(np.linalg.eigvalsh(self.covariance[:3, :3]).max(), 0.0)))
+
+    @property
+    def rotation_std_deg(self) -> float:
+        """1-sigma rotation uncertainty about the worst axis, in degrees."""
+        return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(self.covariance[3:, 3:]).max(), 0.0))))
+
+    @staticmethod
+    def invalid(reason: str, mode: str = "none", **counts: int) -> "Pose":
+        """A pose that could not be computed at all."""
+        return Pose(np.full((3, 3), np.nan), np.full(3, np.nan), np.full((6, 6), np.nan), mode, False, reason,
+                    **counts)

@@ -1,0 +1,181 @@
+"""Pose math against exact projections of a known pose (plus noise)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from edgecal.detection.types import Detection
+from edgecal.pose import (Pose, PoseSettings, QualityBounds, StereoCameras, estimate_pose, fit_rigid,
+                          triangulate_pixels)
+from edgecal.targets import Board, Target
+
+
+def robot_target() -> Target:
+    """Three 6x5 boards on three faces of a robot body (like configs/targets/robot-3boards.yaml)."""
+    return Target("robot", (
+        Board("front", 6, 5, 20.0, np.array([-50.0, -40.0, -60.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0])),
+        Board("left", 6, 5, 20.0, np.array([-80.0, -40.0, 50.0]), np.array([0, 0, -1.0]), np.array([0, 1.0, 0])),
+        Board("right", 6, 5, 20.0, np.array([80.0, -40.0, -50.0]), np.array([0, 0, 1.0]), np.array([0, 1.0, 0])),
+    ))
+
+
+def stereo_cams(distorted: bool = True) -> StereoCameras:
+    K = np.array([[1100.0, 0, 640.0], [0, 1100.0, 400.0], [0, 0, 1]])
+    K2 = np.array([[1090.0, 0, 630.0], [0, 1092.0, 405.0], [0, 0, 1]])
+    d1 = np.array([-0.12, 0.08, 0.001, -0.0005, 0.0]) if distorted else np.zeros(5)
+    d2 = np.array([-0.10, 0.05, -0.001, 0.0005, 0.0]) if distorted else np.zeros(5)
+    R = Rotation.from_euler("y", -4, degrees=True).as_matrix()
+    T = np.array([-0.12, 0.001, 0.002])
+    return StereoCameras(K, d1, K2, d2, R, T, (1280, 800))
+
+
+def true_pose() -> tuple[np.ndarray, np.ndarray]:
+    R = Rotation.from_euler("xyz", [20, 25, -10], degrees=True).as_matrix()
+    return R, np.array([-0.05, 0.03, 1.0])
+
+
+def render_detections(target: Target, cams: StereoCameras, R: np.ndarray, t: np.ndarray, noise_px: float = 0.0,
+                      rng: np.random.Generator | None = None) -> tuple[list[Detection], list[Detection]]:
+    """Exact projections of every corner facing each camera (plus Gaussian noise) as Detections."""
+    out: tuple[list[Detection], list[Detection]] = ([], [])
+    rvec_rl, _ = cv2.Rodrigues(cams.R)
+    for b in target.boards:
+        X = b.target_points_mm() / 1000.0
+        for side, (K, d) in enumerate(((cams.camera_matrix_left, cams.dist_coeffs_left),
+                                       (cams.camera_matrix_right, cams.dist_coeffs_right))):
+            Rc = R if side == 0 else cams.R @ R
+            tc = t if side == 0 else cams.R @ t + cams.T
+            centre = Rc @ X.mean(axis=0) + tc
+            if (Rc @ b.normal) @ centre >= 0:      # board faces away from this camera
+                continue
+            px, _ = cv2.projectPoints(X, cv2.Rodrigues(Rc)[0], tc, K, d)
+            px = px.reshape(-1, 2)
+            if noise_px:
+                px = px + rng.normal(0, noise_px, px.shape)
+            out[side].append(Detection(b.name, px, b.ids(), np.ones(len(px)), (b.cols, b.rows)))
+    return out
+
+
+def rotation_error_rad(R_est: np.ndarray, R_true: np.ndarray) -> np.ndarray:
+    """The estimate's rotation error d with R_est = exp([d]x) R_true (rad), the sign of t_est - t_true."""
+    return Rotation.from_matrix(R_est @ R_true.T).as_rotvec()
+
+
+def test_fit_rigid_recovers_transform_and_never_reflects() -> None:
+    rng = np.random.default_rng(1)
+    X = rng.normal(size=(20, 3))
+    R = Rotation.from_rotvec([0.3, -1.2, 0.7]).as_matrix()
+    t = np.array([0.1, -2.0, 3.0])
+    R_est, t_est = fit_rigid(X, X @ R.T + t)
+    assert np.allclose(R_est, R, atol=1e-12) and np.allclose(t_est, t, atol=1e-12)
+    # A mirrored cloud has no proper rotation mapping it exactly: the answer must still be a rotation.
+    R_m, _ = fit_rigid(X, X * np.array([1, 1, -1]))
+    assert np.linalg.det(R_m) == pytest.approx(1.0)
+
+
+def test_triangulation_is_exact_on_exact_projections() -> None:
+    cams = stereo_cams()
+    rng = np.random.default_rng(2)
+    X = rng.uniform([-0.3, -0.2, 0.8], [0.3, 0.2, 1.5], size=(50, 3))
+    pl, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cams.camera_matrix_left, cams.dist_coeffs_left)
+    pr, _ = cv2.projectPoints(X, cv2.Rodrigues(cams.R)[0], cams.T, cams.camera_matrix_right, cams.dist_coeffs_right)
+    for optimal in (True, False):
+        Xt = triangulate_pixels(cams, pl.reshape(-1, 2), pr.reshape(-1, 2), optimal=optimal)
+        assert np.abs(Xt - X).max() < 1e-7
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_stereo_pose_is_exact_on_exact_projections(distorted: bool) -> None:
+    target, cams = robot_target(), stereo_cams(distorted)
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    pose = estimate_pose(left, right, target, cams)
+    assert pose.valid, pose.reason
+    assert pose.mode == "stereo" and pose.n_both >= 30
+    assert np.abs(pose.t_m - t).max() < 1e-9
+    assert np.linalg.norm(rotation_error_rad(pose.R, R)) < 1e-9
+    assert pose.rms_px < 1e-6
+    q = pose.quaternion_xyzw
+    assert q[3] >= 0 and np.allclose(Rotation.from_quat(q).as_matrix(), R, atol=1e-9)
+    # Default scale "max": exact data still reports the configured corner noise, not zero.
+    assert 0 < pose.position_std_mm < 1.0
+
+
+def test_mono_fallback_when_one_camera_sees_nothing() -> None:
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    for l, r, mode in ((left, [], "mono-left"), ([], right, "mono-right")):
+        pose = estimate_pose(l, r, target, cams)
+        assert pose.valid, pose.reason
+        assert pose.mode == mode
+        assert np.abs(pose.t_m - t).max() < 1e-8
+        assert np.linalg.norm(rotation_error_rad(pose.R, R)) < 1e-8
+
+
+def test_noisy_pose_is_close() -> None:
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t, 0.2, np.random.default_rng(3))
+    pose = estimate_pose(left, right, target, cams)
+    assert pose.valid
+    assert np.linalg.norm(pose.t_m - t) < 2e-3
+    assert np.degrees(np.linalg.norm(rotation_error_rad(pose.R, R))) < 0.2
+    assert 0.1 < pose.rms_px < 0.3
+
+
+def test_quality_bounds_mark_pose_invalid_with_reason() -> None:
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t, 2.0, np.random.default_rng(4))
+    pose = estimate_pose(left, right, target, cams, PoseSettings(bounds=QualityBounds(max_rms_px=0.5)))
+    assert not pose.valid and "max_rms_px" in pose.reason
+    few = [Detection(d.board, d.corners[:2], d.ids[:2], d.quality[:2], d.grid) for d in left[:1]]
+    pose = estimate_pose(few, [], target, cams)
+    assert not pose.valid and "too few corners" in pose.reason
+    pose = estimate_pose([], [], target, cams)
+    assert not pose.valid and pose.reason == "no board detected"
+    tight = PoseSettings(bounds=QualityBounds(max_position_std_mm=1e-6))
+    pose = estimate_pose(left, right, target, cams, tight)
+    assert not pose.valid and "max_position_std_mm" in pose.reason
+
+
+def test_unknown_boards_are_ignored() -> None:
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    stray = Detection("other", np.array([[1.0, 2.0]] * 4), np.array([[0, 0], [1, 0], [0, 1], [1, 1]]),
+                      np.ones(4), (2, 2))
+    pose = estimate_pose(left + [stray], right, target, cams)
+    assert pose.valid and "other" not in pose.boards
+
+
+@pytest.mark.parametrize("scale", ["noise", "residual"])
+def test_covariance_matches_monte_carlo_spread(scale: str) -> None:
+    """With Gaussian corner noise of the configured sigma, the predicted covariance matches the spread.
+
+    The normalised estimation error squared (NEES = e^T C^-1 e) of a consistent 6-D estimator averages 6;
+    each axis' observed std must be within 25 % of the predicted one.
+    """
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    sigma = 0.3
+    settings = PoseSettings(covariance_scale=scale, corner_noise_px=sigma)
+    rng = np.random.default_rng(5)
+    errors, nees, covs = [], [], []
+    for _ in range(300):
+        left, right = render_detections(target, cams, R, t, sigma, rng)
+        pose = estimate_pose(left, right, target, cams, settings)
+        e = np.concatenate([pose.t_m - t, rotation_error_rad(pose.R, R)])
+        errors.append(e)
+        covs.append(pose.covariance)
+        nees.append(e @ np.linalg.solve(pose.covariance, e))
+    errors = np.array(errors)
+    mean_cov = np.mean(covs, axis=0)
+    assert np.mean(nees) == pytest.approx(6.0, rel=0.15)
+    ratio = errors.std(axis=0) / np.sqrt(np.diag(mean_cov))
+    assert np.all((ratio > 0.75) & (ratio < 1.25)), ratio
+    assert np.all(np.abs(errors.mean(axis=0)) < 4 * errors.std(axis=0) / np.sqrt(len(errors)) + 1e-9)
