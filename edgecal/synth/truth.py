@@ -1,0 +1,98 @@
+"""Ground truth of a rendered view in the "edgecal-synth-gt/1" JSON format.
+
+The format is the one of ../shared/data/synthetic/README.md, so one scoring code reads the shared sets
+and edgecal's own renders. Corner pixels come from cv2.projectPoints (the reference definition of the
+camera model); a corner is listed only when its printed side faces the camera, no other panel is in
+front of it and it lies at least ``border_px`` inside the image.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from edgecal.synth.camera import CameraModel
+from edgecal.synth.render import Panel, visible_mask
+
+GT_FORMAT = "edgecal-synth-gt/1"
+PAIR_FORMAT = "edgecal-synth-gt/1+stereo"
+UNITS = {"length": "mm", "pixels": "OpenCV: integer coordinates are pixel centres, x right, y down"}
+
+
+def project_points_cv(camera: CameraModel, points_world: np.ndarray, R_cam_world: np.ndarray,
+                      t_cam_world_mm: np.ndarray) -> np.ndarray:
+    """cv2.projectPoints of world points (N, 3) -> pixels (N, 2)."""
+    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 1, 3)
+    if len(pts) == 0:
+        return np.zeros((0, 2))
+    rvec, _ = cv2.Rodrigues(np.asarray(R_cam_world, dtype=np.float64))
+    px, _ = cv2.projectPoints(pts, rvec, np.asarray(t_cam_world_mm, dtype=np.float64).reshape(3, 1),
+                              camera.K, camera.dist)
+    return px.reshape(-1, 2)
+
+
+def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray,
+                border_px: float = 4.0) -> list[dict]:
+    """The ``boards`` section: per printed panel with at least one visible corner, its visible corners."""
+    R = np.asarray(R_cam_world, dtype=np.float64)
+    t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
+    w, h = camera.size
+    out = []
+    board_index = -1
+    for k, p in enumerate(panels):
+        if p.board is None:
+            continue
+        board_index += 1
+        b = p.board
+        ids = b.ids()
+        s = b.square_mm
+        xyz = (np.asarray(p.origin_mm)[None, :] + (ids[:, :1] * s) * np.asarray(p.x_axis)[None, :]
+               + (ids[:, 1:2] * s) * np.asarray(p.y_axis)[None, :])
+        z = (xyz @ R.T + t)[:, 2]
+        ok = visible_mask(camera, panels, R, t, k, xyz) & (z > 0)
+        px = np.full((len(ids), 2), np.nan)
+        if ok.any():
+            px[ok] = project_points_cv(camera, xyz[ok], R, t)
+        inside = ((px[:, 0] >= border_px - 0.5) & (px[:, 0] <= w - 0.5 - border_px)
+                  & (px[:, 1] >= border_px - 0.5) & (px[:, 1] <= h - 0.5 - border_px))
+        ok &= inside
+        if not ok.any():
+            continue
+        out.append({
+            "board": board_index,
+            "name": p.name,
+            "cols": b.cols,
+            "rows": b.rows,
+            "ids": ids[ok].tolist(),
+            "corners": px[ok].tolist(),
+            "xyz_mm": xyz[ok].tolist(),
+            "n_total": int(b.n_corners),
+            "n_visible": int(ok.sum()),
+            "complete": bool(ok.all()),
+        })
+    return out
+
+
+def target_json(panels: list[Panel], frame: str = "world", name: str | None = None) -> dict:
+    """The ``target`` section: every printed panel of the scene, in the world (or target) frame."""
+    boards = []
+    for p in panels:
+        if p.board is None:
+            continue
+        boards.append({
+            "name": p.name,
+            "cols": p.board.cols,
+            "rows": p.board.rows,
+            "square_mm": float(p.board.square_mm),
+            "origin_mm": [float(v) for v in p.origin_mm],
+            "x_axis": [float(v) for v in p.x_axis],
+            "y_axis": [float(v) for v in p.y_axis],
+            "panel_extent_mm": [float(v) for v in p.extent_mm],
+            "first_square": "black",
+            "black_albedo": float(p.black_albedo),
+            "white_albedo": float(p.white_albedo),
+        })
+    out: dict = {"frame": frame, "boards": boards}
+    if name:
+        out["name"] = name
+    return out
