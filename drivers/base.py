@@ -62,6 +62,15 @@ class Source(abc.ABC):
 
     uri: str = ""
 
+    def describe(self) -> dict:
+        """The source's URI and settings as plain JSON-able values (written into recording manifests)."""
+        return {"uri": self.uri}
+
+    @property
+    def dropped(self) -> int:
+        """Frames this source knowingly discarded (overwritten, unpaired, lost by the device)."""
+        return 0
+
     @abc.abstractmethod
     def open(self) -> None:
         """Open the device (or file) and start streaming."""

@@ -1,0 +1,191 @@
+"""edgecal recordings: lossless PNG frames plus a manifest of timestamps and the source's settings.
+
+Layout of a recording folder::
+
+    manifest.json           format, layout (mono | stereo), the source's description, one entry per frame
+    frames/000000.png       mono recordings
+    left/000000.png         stereo recordings: one file per side, same index = same pair
+    right/000000.png
+
+A manifest frame entry holds ``file`` (relative path), ``stamp_ns``, ``recv_ns``, ``seq``, ``camera_id``,
+``exposure_us``, ``gain_db``; a stereo entry is ``{"left": {...}, "right": {...}}``. PNG keeps uint8 and
+uint16, grey and BGR, bit for bit; replaying gives back the same pixels and ``stamp_ns``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from edgecal.drivers.base import Frame, Source, StereoFrame
+from edgecal.errors import InputError
+
+MANIFEST = "manifest.json"
+FORMAT = "edgecal-recording"
+VERSION = 1
+# Folders a recording writes into; --force clears exactly these (and the manifest), nothing else.
+_FRAME_DIRS = ("frames", "left", "right")
+
+
+def write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temp file in the same folder and os.replace."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def encode_png(image: np.ndarray, name: str) -> bytes:
+    """Lossless PNG bytes of a uint8/uint16 grey or BGR image."""
+    if image.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{name}: cannot record a {image.dtype} image (uint8 or uint16 only)")
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise InputError(f"{name}: PNG encoding failed for an image of shape {image.shape}")
+    return buf.tobytes()
+
+
+def _frame_entry(frame: Frame, file: str) -> dict[str, Any]:
+    return {"file": file, "stamp_ns": int(frame.stamp_ns), "recv_ns": int(frame.recv_ns), "seq": int(frame.seq),
+            "camera_id": frame.camera_id, "exposure_us": frame.exposure_us, "gain_db": frame.gain_db}
+
+
+class Recorder:
+    """Writes frames (or stereo pairs) into a recording folder; ``close()`` writes the final manifest.
+
+    The manifest is also rewritten every ``flush_every`` frames, so a recording cut short by a crash or
+    a power loss is still replayable up to the last flush.
+    """
+
+    def __init__(self, out_dir: str | Path, source: dict[str, Any], force: bool = False,
+                 flush_every: int = 100) -> None:
+        self.out = Path(out_dir)
+        self.source = source
+        self.flush_every = flush_every
+        self.entries: list[dict[str, Any]] = []
+        self.layout: str | None = None
+        self.started_utc = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+        if self.out.exists() and not self.out.is_dir():
+            raise InputError(f"{self.out}: exists and is not a folder (choose another --out)")
+        if self.out.is_dir() and any(self.out.iterdir()):
+            if not force:
+                raise InputError(f"{self.out}: folder is not empty (choose another --out, or --force to replace "
+                                 "the recording in it)")
+            for d in _FRAME_DIRS:
+                if (self.out / d).is_dir():
+                    shutil.rmtree(self.out / d)
+            if (self.out / MANIFEST).exists():
+                (self.out / MANIFEST).unlink()
+        self.out.mkdir(parents=True, exist_ok=True)
+
+    def _write_image(self, sub: str, index: int, frame: Frame) -> str:
+        rel = f"{sub}/{index:06d}.png"
+        (self.out / sub).mkdir(exist_ok=True)
+        write_atomic(self.out / rel, encode_png(frame.image, f"{self.out / rel}"))
+        return rel
+
+    def add(self, item: Frame | StereoFrame) -> None:
+        """Append one frame or stereo pair (a recording holds one kind only)."""
+        layout = "stereo" if isinstance(item, StereoFrame) else "mono"
+        if self.layout is None:
+            self.layout = layout
+        elif layout != self.layout:
+            raise InputError(f"{self.out}: a {self.layout} recording cannot take a {layout} frame")
+        i = len(self.entries)
+        if isinstance(item, StereoFrame):
+            entry = {"left": _frame_entry(item.left, self._write_image("left", i, item.left)),
+                     "right": _frame_entry(item.right, self._write_image("right", i, item.right))}
+        else:
+            entry = _frame_entry(item, self._write_image("frames", i, item))
+        self.entries.append(entry)
+        if self.flush_every and len(self.entries) % self.flush_every == 0:
+            self.write_manifest()
+
+    def write_manifest(self) -> None:
+        """Write manifest.json atomically with every frame added so far."""
+        manifest = {"format": FORMAT, "version": VERSION, "layout": self.layout or "mono",
+                    "started_utc": self.started_utc, "source": self.source, "frames": self.entries}
+        write_atomic(self.out / MANIFEST, json.dumps(manifest, indent=1).encode("utf-8"))
+
+    def close(self) -> None:
+        """Write the final manifest."""
+        self.write_manifest()
+
+
+@dataclass
+class RecordingSummary:
+    """What ``record`` wrote."""
+
+    out: Path
+    frames: int
+    seconds: float
+    dropped: int
+    layout: str
+
+
+def record(source: Source, out_dir: str | Path, frames: int | None = None, seconds: float | None = None,
+           force: bool = False, on_frame: Callable[[int, Frame | StereoFrame], None] | None = None
+           ) -> RecordingSummary:
+    """Record from an opened ``source`` until ``frames`` frames or ``seconds`` have passed (or it ends).
+
+    With neither limit, records until the source ends (a replay) or KeyboardInterrupt (a camera); the
+    manifest is written in every case.
+    """
+    rec = Recorder(out_dir, source.describe(), force=force)
+    t0 = time.monotonic()
+    n = 0
+    try:
+        while frames is None or n < frames:
+            if seconds is not None and time.monotonic() - t0 >= seconds:
+                break
+            item = source.read()
+            if item is None:
+                break
+            rec.add(item)
+            n += 1
+            if on_frame is not None:
+                on_frame(n - 1, item)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        rec.close()
+    return RecordingSummary(rec.out, n, time.monotonic() - t0, source.dropped, rec.layout or "mono")
+
+
+def load_manifest(folder: str | Path) -> dict[str, Any]:
+    """Read and check a recording's manifest.json; InputError naming the file on any problem."""
+    path = Path(folder) / MANIFEST
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: not found (is {folder} an edgecal recording?)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: unreadable manifest ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise InputError(f"{path}: not an edgecal recording manifest (format must be {FORMAT!r})")
+    if data.get("version") != VERSION:
+        raise InputError(f"{path}: recording version {data.get('version')!r} is not supported "
+                         f"(this edgecal reads version {VERSION})")
+    if data.get("layout") not in ("mono", "stereo") or not isinstance(data.get("frames"), list):
+        raise InputError(f"{path}: manifest needs 'layout' (mono or stereo) and a 'frames' list")
+    keys = ("file", "stamp_ns", "seq")
+    for i, entry in enumerate(data["frames"]):
+        sides = [entry.get("left"), entry.get("right")] if data["layout"] == "stereo" else [entry]
+        for e in sides:
+            if not isinstance(e, dict) or any(k not in e for k in keys):
+                raise InputError(f"{path}: frames[{i}] lacks one of {', '.join(keys)}")
+    return data

@@ -1,0 +1,142 @@
+"""Replay and recording: a recording replays bit for bit (pixels and capture timestamps)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from driver_frames import ListSource, render_frame
+from edgecal.drivers import Frame, StereoFrame, StereoSource, open_source, record
+from edgecal.errors import DeviceError, InputError
+
+
+def _camera_frames(n: int, shape: tuple[int, ...], dtype: type, start_ns: int = 123_456_789_012) -> list[Frame]:
+    # Irregular stamps (jitter) so that a replay that re-stamps at a nominal rate would be caught.
+    rng = np.random.default_rng(7)
+    stamps = start_ns + np.cumsum(rng.integers(30_000_000, 36_000_000, size=n))
+    return [Frame(render_frame(i, shape, dtype), int(s), int(s) + 1000, 10 + 2 * i, "cam0", 5000.0 + i, 1.5)
+            for i, s in enumerate(stamps)]
+
+
+@pytest.mark.parametrize("shape, dtype", [((40, 56), np.uint8), ((40, 56, 3), np.uint8), ((30, 20), np.uint16)])
+def test_recording_round_trip_is_bit_exact(tmp_path: Path, shape: tuple[int, ...], dtype: type) -> None:
+    frames = _camera_frames(6, shape, dtype)
+    with ListSource(frames) as src:
+        summary = record(src, tmp_path / "rec")
+    assert summary.frames == 6 and summary.layout == "mono"
+    manifest = json.loads((tmp_path / "rec" / "manifest.json").read_text())
+    assert manifest["format"] == "edgecal-recording" and len(manifest["frames"]) == 6
+    with open_source(f"replay:{tmp_path / 'rec'}?pace=fast") as rep:
+        out = list(rep)
+    assert len(out) == 6
+    for a, b in zip(frames, out):
+        assert b.image.dtype == a.image.dtype and b.image.shape == a.image.shape
+        assert np.array_equal(a.image, b.image)
+        assert (b.stamp_ns, b.seq, b.camera_id, b.exposure_us, b.gain_db) == (
+            a.stamp_ns, a.seq, a.camera_id, a.exposure_us, a.gain_db)
+
+
+def test_stereo_recording_round_trip_and_stereo_folder(tmp_path: Path) -> None:
+    left = _camera_frames(4, (24, 32), np.uint8)
+    right = [Frame(render_frame(100 + i, (24, 32)), f.stamp_ns + 700, f.recv_ns, f.seq, "cam1")
+             for i, f in enumerate(left)]
+
+    class Pairs(ListSource, StereoSource):
+        pass
+
+    with Pairs([StereoFrame(a, b) for a, b in zip(left, right)]) as src:
+        assert record(src, tmp_path / "rec").layout == "stereo"
+    assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == ["left", "manifest.json", "right"]
+    src = open_source(f"replay:{tmp_path / 'rec'}?pace=fast")
+    assert isinstance(src, StereoSource)
+    with src:
+        pairs = list(src)
+    assert len(pairs) == 4
+    for p, a, b in zip(pairs, left, right):
+        assert np.array_equal(p.left.image, a.image) and np.array_equal(p.right.image, b.image)
+        assert (p.left.stamp_ns, p.right.stamp_ns, p.skew_ns) == (a.stamp_ns, b.stamp_ns, 700)
+    # A rendered stereo sequence (left/ and right/ image folders, no manifest) is a stereo source too.
+    (tmp_path / "seq" / "left").mkdir(parents=True)
+    (tmp_path / "seq" / "right").mkdir()
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / "seq" / "left" / f"{i:03d}.png"), render_frame(i))
+        cv2.imwrite(str(tmp_path / "seq" / "right" / f"{i:03d}.png"), render_frame(50 + i))
+    with open_source(f"replay:{tmp_path / 'seq'}?pace=fast&fps=20") as seq:
+        assert isinstance(seq, StereoSource)
+        pairs = list(seq)
+    assert [p.left.stamp_ns for p in pairs] == [0, 50_000_000, 100_000_000]
+    assert np.array_equal(pairs[2].right.image, render_frame(52))
+
+
+def test_replay_paces_at_the_recorded_rate_and_loops(tmp_path: Path) -> None:
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"f{i}.png"), render_frame(i))
+    with open_source(f"replay:{folder}?fps=20") as src:
+        t0 = time.monotonic()
+        frames = list(src)
+        elapsed = time.monotonic() - t0
+    assert len(frames) == 3 and elapsed >= 0.095  # two 50 ms intervals, slept for in real time
+    with open_source(f"replay:{folder}?fps=20&pace=fast&loop=true") as src:
+        looped = [src.read() for _ in range(7)]
+    assert [f.seq for f in looped] == list(range(7))
+    assert np.all(np.diff([f.stamp_ns for f in looped]) == 50_000_000)
+    assert np.array_equal(looped[4].image, frames[1].image)
+
+
+def test_replay_of_a_video_file(tmp_path: Path) -> None:
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))
+    if not writer.isOpened():
+        pytest.skip("this OpenCV build cannot write MJPG AVI")
+    for i in range(5):
+        writer.write(render_frame(i, (48, 64, 3)))
+    writer.release()
+    with open_source(f"replay:{path}?pace=fast") as src:
+        frames = list(src)
+    assert len(frames) == 5 and frames[0].image.shape == (48, 64, 3)
+    assert [f.stamp_ns for f in frames] == [i * 40_000_000 for i in range(5)]
+
+
+def test_recorder_never_clobbers_without_force(tmp_path: Path) -> None:
+    out = tmp_path / "rec"
+    with ListSource(_camera_frames(2, (8, 8), np.uint8)) as src:
+        record(src, out)
+    with ListSource(_camera_frames(1, (8, 8), np.uint8)) as src, pytest.raises(InputError, match="not empty"):
+        record(src, out)
+    with ListSource(_camera_frames(1, (8, 8), np.uint8)) as src:
+        assert record(src, out, force=True).frames == 1
+    assert len(json.loads((out / "manifest.json").read_text())["frames"]) == 1
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["000000.png"]
+
+
+def test_record_stops_at_frames_or_seconds(tmp_path: Path) -> None:
+    with ListSource(_camera_frames(10, (8, 8), np.uint8)) as src:
+        assert record(src, tmp_path / "a", frames=3).frames == 3
+    with ListSource(_camera_frames(50, (8, 8), np.uint8), period_s=0.01) as src:
+        n = record(src, tmp_path / "b", seconds=0.1).frames
+    assert 3 <= n < 50
+
+
+def test_replay_errors_name_the_path(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no such file or folder"):
+        open_source(f"replay:{tmp_path / 'missing'}")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="holds no images"):
+        open_source(f"replay:{tmp_path / 'empty'}")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "manifest.json").write_text("{}")
+    with pytest.raises(InputError, match="not an edgecal recording"):
+        open_source(f"replay:{tmp_path / 'bad'}")
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "a.png").write_bytes(b"not a png")
+    with open_source(f"replay:{tmp_path / 'junk'}") as src, pytest.raises(InputError, match="a.png: not a readable"):
+        src.read()
+    with pytest.raises(DeviceError, match="before open"):
+        open_source(f"replay:{tmp_path / 'junk'}").read()

@@ -1,0 +1,76 @@
+"""Source URIs and config sections: parsed into specs, every mistake named by field."""
+
+from __future__ import annotations
+
+import pytest
+
+from edgecal.drivers import parse_uri, spec_from_config
+from edgecal.errors import ConfigError
+
+
+def test_uri_forms() -> None:
+    s = parse_uri("replay:/data/run1?pace=fast&loop=true&fps=15")
+    assert (s.driver, s.target, s.settings.pace, s.settings.loop, s.settings.fps) == (
+        "replay", "/data/run1", "fast", True, 15.0)
+    assert parse_uri("v4l2:").target == "/dev/video0"
+    a = parse_uri("aravis:127.0.0.1?exposure_us=5000&gain_db=3&pixel_format=BayerRG8&timeout_s=0.5")
+    assert (a.target, a.settings.exposure_us, a.settings.gain_db, a.settings.pixel_format, a.settings.timeout_s) == (
+        "127.0.0.1", 5000.0, 3.0, "BayerRG8", 0.5)
+    assert parse_uri("dc1394:00b09d0100a1b2c3").target == "00b09d0100a1b2c3"
+    assert parse_uri("depthai:").target == ""
+    assert parse_uri("depthai:1844301011B5C01200").target == "1844301011B5C01200"
+
+
+def test_stereo_uri_splits_at_driver_names_and_takes_pair_options() -> None:
+    s = parse_uri("stereo:[replay:a,b/left,replay:c?pace=fast]?max_skew_ms=2")
+    assert s.driver == "stereo" and s.settings.max_skew_ms == 2.0
+    assert s.left is not None and s.right is not None
+    assert (s.left.target, s.right.target, s.right.settings.pace) == ("a,b/left", "c", "fast")
+    assert s.uri == "stereo:replay:a,b/left,replay:c"
+
+
+@pytest.mark.parametrize("uri, words", [
+    ("nothing", "DRIVER:TARGET"),
+    ("usb:0", "unknown driver 'usb'"),
+    ("replay:", "needs a path"),
+    ("replay:x?pace=slow", "field 'pace' must be one of recorded, fast"),
+    ("aravis:x?gain=3", "field 'gain' is not a setting of the aravis driver"),
+    ("aravis:x?trigger=sometimes", "field 'trigger' must be one of"),
+    ("v4l2:/dev/video0?pixel_format=ABCD", "field 'pixel_format'"),
+    ("v4l2:/dev/video0?width=-4", "field 'width' must be at least 1"),
+    ("aravis:x?fps=fast", "field 'fps' must be a number"),
+    ("dc1394:notahex", "must be hexadecimal"),
+    ("stereo:replay:a", "stereo needs two sources"),
+    ("stereo:depthai:,replay:b", "must be a mono camera"),
+])
+def test_bad_uris_name_the_problem(uri: str, words: str) -> None:
+    with pytest.raises(ConfigError, match=words.replace("(", r"\(").replace("?", r"\?")):
+        parse_uri(uri)
+
+
+def test_config_sections() -> None:
+    s = spec_from_config({"uri": "aravis:10.0.0.5?fps=10", "fps": 30, "exposure_us": 2000}, "cam.yaml")
+    assert (s.driver, s.target, s.settings.fps, s.settings.exposure_us) == ("aravis", "10.0.0.5", 30.0, 2000.0)
+    s = spec_from_config({"driver": "v4l2", "device": "/dev/video2", "width": 640, "height": 480}, "cam.yaml")
+    assert (s.target, s.settings.width, s.settings.height) == ("/dev/video2", 640, 480)
+    s = spec_from_config({"stereo": {"left": {"uri": "replay:l"}, "right": {"driver": "replay", "path": "r"},
+                                     "max_skew_ms": 1.5, "timeout_s": 0.3}}, "cam.yaml")
+    assert (s.left.target, s.right.target, s.settings.max_skew_ms, s.settings.timeout_s) == ("l", "r", 1.5, 0.3)
+
+
+@pytest.mark.parametrize("section, words", [
+    ({"uri": "replay:a", "exposure_us": 3}, "cam.yaml: field 'exposure_us' is not a setting of the replay driver"),
+    ({"driver": "aravis", "nme": "x"}, "field 'nme' is not a setting of the aravis driver"),
+    ({"driver": "firewire"}, "field 'driver' must be one of"),
+    ({"driver": "replay"}, "field 'path' is missing"),
+    ({"uri": "aravis:x", "name": "y"}, "field 'name' cannot be given together with 'uri'"),
+    ({"uri": "aravis:x", "timeout_s": 0}, "field 'timeout_s' must be greater than 0"),
+    ({"stereo": {"left": {"uri": "replay:a"}}}, "field 'stereo.right' is missing"),
+    ({"stereo": {"left": {"uri": "replay:a"}, "right": {"uri": "replay:b", "loop": "yes"}}},
+     "field 'stereo.right.loop' must be true or false"),
+    ({"stereo": {"left": {"uri": "replay:a"}, "right": {"uri": "replay:b"}, "skew": 1}},
+     "field 'stereo.skew' is not a field of a stereo section"),
+])
+def test_bad_sections_name_the_field(section: dict, words: str) -> None:
+    with pytest.raises(ConfigError, match=words.replace("(", r"\(")):
+        spec_from_config(section, "cam.yaml")
