@@ -1,0 +1,225 @@
+"""Writing and reading calibration files: rig.yaml (cv2.FileStorage) and ROS camera_info YAML.
+
+rig.yaml nodes (stereo): image_size [w, h], camera_matrix_left, dist_coeffs_left, camera_matrix_right,
+dist_coeffs_right, R, T (metres; X_right = R X_left + T), and their standard deviations
+(intrinsics_std_left/right: fx fy cx cy k1 k2 p1 p2 k3, .Nan where the term was fixed; R_std_rad, the
+std of R's rotation vector; T_std_m), plus the rectification R1 R2 P1 P2 Q and quality figures.
+A single camera writes camera_matrix, dist_coeffs and intrinsics_std instead.
+
+Every write goes to a temporary file in the destination folder and is moved into place with
+os.replace, so a reader never sees half a file; an existing file is replaced only with ``force``.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from edgecal.calibration.refine import INTRINSIC_NAMES
+from edgecal.calibration.types import Calibration, Camera
+from edgecal.errors import ConfigError, InputError
+
+
+def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
+    """The ROS camera_info files written beside ``rig_path``: NAME.left/right.camera_info.yaml (or NAME.camera_info.yaml)."""
+    p = Path(rig_path)
+    stem = p.name[: -len(p.suffix)] if p.suffix else p.name
+    names = ("left", "right") if stereo else ("",)
+    return [p.with_name(f"{stem}.{n}.camera_info.yaml" if n else f"{stem}.camera_info.yaml") for n in names]
+
+
+def check_writable(paths: list[Path], force: bool) -> None:
+    """Raise InputError if a destination folder is missing, or a file exists and ``force`` is off."""
+    for p in paths:
+        if not p.parent.is_dir():
+            raise InputError(f"{p}: the folder {p.parent} does not exist (create it first)")
+        if p.exists() and not force:
+            raise InputError(f"{p}: the file exists; pass --force to replace it")
+
+
+def _atomic(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=str(path.parent), prefix=f".{path.name}.", suffix=".tmp.yaml")
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _std_row(std: dict[str, float]) -> np.ndarray:
+    return np.array([[std.get(n, np.nan) for n in INTRINSIC_NAMES]], dtype=np.float64)
+
+
+def _write_rig(cal: Calibration, tmp: str) -> None:
+    fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
+    if not fs.isOpened():
+        raise InputError(f"{tmp}: cannot write here")
+    fs.writeComment("edgecal calibration; T in metres, X_right = R X_left + T (docs/conventions.md)")
+    fs.startWriteStruct("image_size", cv2.FileNode_SEQ | cv2.FileNode_FLOW)
+    fs.write("", int(cal.image_size[0]))
+    fs.write("", int(cal.image_size[1]))
+    fs.endWriteStruct()
+    fs.write("calibration_kind", cal.kind)
+    fs.write("rms_px", float(cal.rms_px))
+    suffixes = ("_left", "_right") if cal.is_stereo else ("",)
+    for cam, std, sfx in zip(cal.cameras, cal.camera_std, suffixes):
+        fs.write("camera_matrix" + sfx, cam.camera_matrix)
+        fs.write("dist_coeffs" + sfx, np.asarray(cam.dist_coeffs, dtype=np.float64).reshape(1, -1))
+        fs.writeComment("std order: fx fy cx cy k1 k2 p1 p2 k3 (.Nan = fixed)")
+        fs.write("intrinsics_std" + sfx, _std_row(std))
+    if cal.is_stereo:
+        fs.write("R", cal.rotation)
+        fs.write("T", np.ravel(cal.translation_mm).reshape(3, 1) * 1e-3)
+        fs.write("R_std_rad", np.ravel(cal.rotation_std_rad).reshape(3, 1))
+        fs.write("T_std_m", np.ravel(cal.translation_std_mm).reshape(3, 1) * 1e-3)
+        if cal.rectification is not None:
+            rect = cal.rectification
+            fs.write("R1", rect.r1)
+            fs.write("R2", rect.r2)
+            fs.write("P1", rect.p1)
+            p2 = rect.p2.copy()
+            p2[:, 3] *= 1e-3  # stereoRectify works in the unit of T (mm here); the file is in metres
+            fs.write("P2", p2)
+            q = rect.q.copy()
+            q[3, :] *= 1e3
+            fs.write("Q", q)
+            fs.write("epipolar_rms_px", float(rect.epipolar_rms_px))
+        if cal.reconstruction is not None:
+            fs.write("reconstruction_error_mean_mm", float(cal.reconstruction.mean_mm))
+            fs.write("reconstruction_error_std_mm", float(cal.reconstruction.std_mm))
+    fs.release()
+
+
+def _matrix(m: np.ndarray) -> dict:
+    m = np.asarray(m, dtype=np.float64)
+    return {"rows": int(m.shape[0]), "cols": int(m.shape[1]), "data": [float(v) for v in m.ravel()]}
+
+
+def camera_info(cal: Calibration, index: int) -> dict:
+    """The ROS sensor_msgs/CameraInfo YAML mapping (camera_calibration_parsers layout) of one camera."""
+    cam = cal.cameras[index]
+    name = cal.camera_names[index]
+    if cal.is_stereo and cal.rectification is not None:
+        rect = cal.rectification.r1 if index == 0 else cal.rectification.r2
+        proj = (cal.rectification.p1 if index == 0 else cal.rectification.p2).copy()
+        proj[:, 3] *= 1e-3  # ROS wants the baseline term Tx * fx with Tx in metres
+    else:
+        rect = np.eye(3)
+        proj = np.hstack([cam.camera_matrix, np.zeros((3, 1))])
+    return {
+        "image_width": int(cal.image_size[0]),
+        "image_height": int(cal.image_size[1]),
+        "camera_name": name,
+        "camera_matrix": _matrix(cam.camera_matrix),
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": _matrix(np.asarray(cam.dist_coeffs, dtype=np.float64).reshape(1, -1)),
+        "rectification_matrix": _matrix(rect),
+        "projection_matrix": _matrix(proj),
+    }
+
+
+def write_calibration(cal: Calibration, path: str | Path, force: bool = False) -> list[Path]:
+    """Write rig.yaml and one camera_info YAML per camera, atomically; return the paths written.
+
+    Nothing is written if any destination exists and ``force`` is off.
+    """
+    rig = Path(path)
+    infos = camera_info_paths(rig, cal.is_stereo)
+    check_writable([rig, *infos], force)
+    _atomic(rig, lambda tmp: _write_rig(cal, tmp))
+    for i, p in enumerate(infos):
+        text = yaml.safe_dump(camera_info(cal, i), sort_keys=False, default_flow_style=None)
+        _atomic(p, lambda tmp, text=text: Path(tmp).write_text(text, encoding="utf-8"))
+    return [rig, *infos]
+
+
+@dataclass
+class Rig:
+    """A calibration read back from rig.yaml: one or two cameras and, for two, T_right_left (metres)."""
+
+    image_size: tuple[int, int]
+    cameras: list[Camera]
+    intrinsics_std: list[dict[str, float]]
+    rotation: np.ndarray | None = None
+    translation_m: np.ndarray | None = None
+    rotation_std_rad: np.ndarray | None = None
+    translation_std_m: np.ndarray | None = None
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # R1 R2 P1 P2 Q when present
+
+    @property
+    def is_stereo(self) -> bool:
+        """Whether the file holds two cameras."""
+        return len(self.cameras) == 2
+
+
+def load_rig(path: str | Path) -> Rig:
+    """Read a rig.yaml written by :func:`write_calibration` (or any file with the same OpenCV nodes).
+
+    Raises InputError for a missing or unreadable file and ConfigError naming a missing or wrong node.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: calibration file not found (run `edgecal calibrate` first)")
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except cv2.error:
+        raise InputError(f"{p}: not a readable OpenCV YAML/XML calibration file") from None
+    if not fs.isOpened():
+        raise InputError(f"{p}: not a readable OpenCV YAML/XML calibration file")
+    try:
+        def node(name: str, shape: tuple[int, ...] | None, required: bool = True) -> np.ndarray | None:
+            n = fs.getNode(name)
+            if n.empty():
+                if required:
+                    raise ConfigError(f"{p}: node '{name}' is missing")
+                return None
+            m = n.mat()
+            if m is None:
+                raise ConfigError(f"{p}: node '{name}' must be an OpenCV matrix")
+            m = np.asarray(m, dtype=np.float64)
+            if shape is not None and m.size != int(np.prod(shape)):
+                raise ConfigError(f"{p}: node '{name}' must hold {int(np.prod(shape))} numbers (has {m.size})")
+            return m.reshape(shape) if shape is not None else m
+
+        size_node = fs.getNode("image_size")
+        if size_node.empty():
+            raise ConfigError(f"{p}: node 'image_size' is missing")
+        if size_node.isSeq():
+            size = [int(size_node.at(i).real()) for i in range(size_node.size())]
+        else:
+            size = [int(v) for v in np.ravel(size_node.mat())]
+        if len(size) != 2 or min(size) <= 0:
+            raise ConfigError(f"{p}: node 'image_size' must be [width, height]")
+        stereo = not fs.getNode("camera_matrix_left").empty()
+        sfx = ("_left", "_right") if stereo else ("",)
+        cams, stds = [], []
+        for s in sfx:
+            k = node("camera_matrix" + s, (3, 3))
+            d = np.ravel(node("dist_coeffs" + s, None))
+            cams.append(Camera(k, d))
+            std = node("intrinsics_std" + s, (9,), required=False)
+            stds.append({n: float(v) for n, v in zip(INTRINSIC_NAMES, std)} if std is not None else {})
+        rig = Rig((size[0], size[1]), cams, stds)
+        if stereo:
+            rig.rotation = node("R", (3, 3))
+            rig.translation_m = node("T", (3,))
+            rig.rotation_std_rad = node("R_std_rad", (3,), required=False)
+            rig.translation_std_m = node("T_std_m", (3,), required=False)
+            if abs(np.linalg.det(rig.rotation) - 1) > 1e-6:
+                raise ConfigError(f"{p}: node 'R' is not a rotation matrix")
+            for name in ("R1", "R2", "P1", "P2", "Q"):
+                m = node(name, None, required=False)
+                if m is not None:
+                    rig.extra[name] = m
+        return rig
+    finally:
+        fs.release()

@@ -1,0 +1,141 @@
+"""The data that the calibration modules pass around: cameras, poses, matched corners, results."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+CAMERA_NAMES = ("left", "right")
+
+
+@dataclass
+class Camera:
+    """A pinhole camera with OpenCV distortion (k1, k2, p1, p2, k3); pixels per docs/conventions.md."""
+
+    camera_matrix: np.ndarray
+    dist_coeffs: np.ndarray
+
+    def copy(self) -> "Camera":
+        """An independent copy (distortion always 5 terms)."""
+        return Camera(np.array(self.camera_matrix, dtype=np.float64).copy(),
+                      np.r_[np.asarray(self.dist_coeffs, dtype=np.float64).ravel(), np.zeros(5)][:5].copy())
+
+
+@dataclass
+class Pose:
+    """A rigid transform ``T_a_b`` as an OpenCV rotation vector and a translation (mm)."""
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+
+    @staticmethod
+    def from_rt(rotation: np.ndarray, translation: np.ndarray) -> "Pose":
+        """From a 3x3 rotation matrix and a translation."""
+        return Pose(cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel(),
+                    np.asarray(translation, dtype=np.float64).ravel().copy())
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """The 3x3 rotation matrix."""
+        return cv2.Rodrigues(np.asarray(self.rvec, dtype=np.float64).reshape(3, 1))[0]
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map (N, 3) points from frame b to frame a."""
+        return np.asarray(points, dtype=np.float64).reshape(-1, 3) @ self.rotation.T + np.ravel(self.tvec)
+
+
+@dataclass(frozen=True)
+class CornerSet:
+    """Corners matched to the target in one image: 3-D target points (mm), pixels and their keys.
+
+    ``keys[i]`` is (board name, col, row): the same key in two images is the same physical corner.
+    """
+
+    object_mm: np.ndarray   # (N, 3)
+    image_px: np.ndarray    # (N, 2)
+    keys: tuple[tuple[str, int, int], ...]
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def labels(self, camera: str, view: int | None = None) -> tuple[str, ...]:
+        """Human-readable corner names for reports, e.g. ``left view 2 board top (3,1)``."""
+        where = camera if view is None else f"{camera} view {view}"
+        return tuple(f"{where} board {b} ({c},{r})" for b, c, r in self.keys)
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """3-D reconstruction error of triangulated corners against their known positions (the paper's Table 2)."""
+
+    mean_mm: float
+    std_mm: float
+    max_mm: float
+    count: int
+    per_board_mm: dict[str, float]   # mean error per board
+    errors_mm: np.ndarray            # (count,)
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """cv2.stereoRectify output (R1, R2, P1, P2, Q) and the rectified epipolar error of the corners."""
+
+    r1: np.ndarray
+    r2: np.ndarray
+    p1: np.ndarray
+    p2: np.ndarray
+    q: np.ndarray
+    epipolar_rms_px: float
+    epipolar_max_px: float
+
+
+@dataclass
+class Calibration:
+    """The result of any calibration: one or two cameras, their uncertainty and the evidence.
+
+    ``kind`` is box-stereo, box-mono, planar-stereo or planar-mono. Camera 0 is the left (or only)
+    camera. ``rotation``/``translation_mm`` map left-camera points to the right camera
+    (X_right = R X_left + T). Per-parameter standard deviations are 1-sigma, from the Jacobian.
+    """
+
+    kind: str
+    image_size: tuple[int, int]
+    cameras: list[Camera]
+    camera_std: list[dict[str, float]]          # per camera: fx fy cx cy k1 k2 p1 p2 k3 -> std (nan = fixed)
+    view_poses: list[Pose]                      # T_cam0_target per view
+    corners: list[list[CornerSet]]              # [camera][view]
+    residuals_px: list[list[np.ndarray]]        # [camera][view] (N, 2) reprojected - detected
+    inliers: list[list[np.ndarray]]             # [camera][view] (N,) bool
+    rms_px: float
+    sigma_px: float
+    rotation: np.ndarray | None = None
+    translation_mm: np.ndarray | None = None
+    rotation_std_rad: np.ndarray | None = None  # std of the rotation vector of R
+    translation_std_mm: np.ndarray | None = None
+    reconstruction: Reconstruction | None = None
+    rectification: Rectification | None = None
+    dropped: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    init: dict[str, dict[str, float]] = field(default_factory=dict)  # camera -> method -> RMS after refinement
+
+    @property
+    def is_stereo(self) -> bool:
+        """Whether there is a second camera."""
+        return len(self.cameras) == 2
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """"left", "right" for stereo; "camera" for one camera."""
+        return CAMERA_NAMES if self.is_stereo else ("camera",)
+
+    def per_board_rms_px(self) -> dict[str, float]:
+        """Reprojection RMS per "camera/board" over the inlier corners."""
+        acc: dict[str, list[float]] = {}
+        for c, name in enumerate(self.camera_names):
+            for cs, res, inl in zip(self.corners[c], self.residuals_px[c], self.inliers[c]):
+                for (board, _, _), r, ok in zip(cs.keys, res, inl):
+                    if ok:
+                        acc.setdefault(f"{name}/{board}", []).append(float(r @ r))
+        return {k: float(np.sqrt(np.mean(v))) for k, v in sorted(acc.items())}
