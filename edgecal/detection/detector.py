@@ -1,0 +1,181 @@
+"""The chessboard detector: the paper's pipeline end to end, arrays in, detections out.
+
+1. candidates: minimum-eigenvalue local maxima of a lightly smoothed image (noise-adaptive smoothing);
+2. circular probe at the paper's radius r_e and at a small radius (squares down to ~8 px), after a cheap
+   ring pre-filter: four border directions, 180-degree test, black/white alternation;
+3. sub-pixel refinement with a window that follows the local square size, then the probe again at a
+   radius adapted to that size (accurate directions for 8..150 px squares);
+4. grouping along the directions with the point-to-line distance, verified by cross-ratios;
+5. completion of each grid (missed corners predicted and verified) and ids from the target board.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from edgecal.detection.candidates import (estimate_noise_sigma, min_eigen_candidates, prepare_image,
+                                          smoothing_sigma)
+from edgecal.detection.completion import complete_grid
+from edgecal.detection.grouping import group_grids
+from edgecal.detection.ordering import assign_ids
+from edgecal.detection.params import DetectorParams
+from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, probe_candidates,
+                                     ring_prefilter)
+from edgecal.detection.subpixel import refine_corners
+from edgecal.detection.types import Detection, DetectionDebug
+from edgecal.images import as_grey
+from edgecal.targets import Board, Target
+
+DEFAULT_PARAMS = DetectorParams()
+
+
+def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, radii: np.ndarray,
+           p: DetectorParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """probe_candidates with the thresholds of ``p``."""
+    return probe_candidates(gx, gy, smooth, np.ascontiguousarray(pts, np.float64),
+                            np.ascontiguousarray(radii, np.float64), p.probe_angles, p.probe_inner_radius_px,
+                            EDGE_ACROSS_RAY, math.radians(p.angle_diff_max_deg), p.sign_fraction,
+                            p.min_contrast, p.min_peak_ratio)
+
+
+def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.ndarray,
+                p: DetectorParams) -> np.ndarray:
+    """Indices of candidates accepted by the probe at r_e or, failing that, at a small radius."""
+    accepted = np.zeros(len(cands), dtype=bool)
+    for radius in (p.probe_radius_px, max(p.probe_radius_min_px, 0.5 * p.probe_radius_px)):
+        todo = np.nonzero(~accepted)[0]
+        if len(todo) == 0:
+            break
+        radii = np.full(len(todo), float(radius))
+        keep = ring_prefilter(smooth, np.ascontiguousarray(cands[todo]), radii, p.min_contrast)
+        todo = todo[keep]
+        if len(todo) == 0:
+            continue
+        ok, _d, _m = _probe(smooth, gx, gy, cands[todo], radii[keep], p)
+        accepted[todo[ok]] = True
+    return np.nonzero(accepted)[0]
+
+
+def _nearest_spacing(pts: np.ndarray) -> np.ndarray:
+    """Distance from each point to its nearest other point: the local square size on a board."""
+    if len(pts) < 2:
+        return np.full(len(pts), 20.0)
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return np.clip(d[:, 1], 4.0, 300.0)
+
+
+def _dedupe(pts: np.ndarray, order: np.ndarray, radius: float = 1.0) -> np.ndarray:
+    """Indices of ``pts`` with no earlier (in ``order``) point within ``radius`` pixels."""
+    tree = cKDTree(pts)
+    taken = np.zeros(len(pts), dtype=bool)
+    keep = []
+    for i in order:
+        if taken[i]:
+            continue
+        keep.append(i)
+        taken[tree.query_ball_point(pts[i], radius)] = True
+    return np.asarray(keep, dtype=np.int64)
+
+
+def _grid_spacing(uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Per corner, the mean distance to its label neighbours."""
+    index = {(int(u), int(v)): i for i, (u, v) in enumerate(uv)}
+    out = np.zeros(len(uv))
+    for i, (u, v) in enumerate(uv):
+        d = [np.hypot(*(xy[j] - xy[i])) for j in (index.get((u + a, v + b)) for a, b in
+                                                  ((1, 0), (-1, 0), (0, 1), (0, -1))) if j is not None]
+        out[i] = np.mean(d) if d else 10.0
+    return out
+
+
+def _boards_by_size(target: Target) -> dict[frozenset, list[Board]]:
+    out: dict[frozenset, list[Board]] = {}
+    for b in target.boards:
+        out.setdefault(frozenset((b.cols, b.rows)), []).append(b)
+    return out
+
+
+def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> DetectionDebug:
+    """Detect the target's boards in ``image`` and return every intermediate result (see DetectionDebug)."""
+    p = params or DEFAULT_PARAMS
+    grey = as_grey(image)
+    smooth, gx, gy = prepare_image(grey, smoothing_sigma(estimate_noise_sigma(grey)))
+    cands, _resp = min_eigen_candidates(smooth, p.candidate_block_size, p.candidate_quality, p.max_candidates)
+    empty = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
+    first = _first_pass(smooth, gx, gy, cands, p)
+    if len(first) < 4:
+        return empty
+
+    # Sub-pixel, then the probe again with its radius adapted to the local square size.
+    pts = cands[first]
+    spacing = _nearest_spacing(pts)
+    pts = refine_corners(smooth, pts, spacing)
+    pts = pts[_dedupe(pts, np.arange(len(pts)))]
+    spacing = _nearest_spacing(pts)
+    radii = np.clip(p.probe_radius_per_spacing * spacing, p.probe_radius_min_px, p.probe_radius_max_px)
+    ok, dirs, meas = _probe(smooth, gx, gy, pts, radii, p)
+    pts, dirs, meas, spacing = pts[ok], dirs[ok], meas[ok], spacing[ok]
+    debug = DetectionDebug(cands, pts, dirs, spacing)
+    if len(pts) < 4:
+        return debug
+    quality = (np.clip(1.0 - meas[:, M_ANGLE_ERR] / math.radians(p.angle_diff_max_deg), 0.0, 1.0)
+               * np.clip(meas[:, M_CONTRAST] / (4.0 * p.min_contrast), 0.0, 1.0))
+
+    labels, _nbr = group_grids(pts, dirs, spacing, quality, p.line_distance_px, p.reference_spacing_px,
+                               p.cross_ratio_tolerance)
+    by_size = _boards_by_size(target)
+    max_dim = max(max(b.cols, b.rows) for b in target.boards)
+    used_boards: set[str] = set()
+    grids = []
+    for comp in np.unique(labels[:, 0]):
+        if comp < 0:
+            continue
+        members = np.nonzero(labels[:, 0] == comp)[0]
+        if len(members) < p.min_grid_corners:
+            continue
+        grid = {(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members}
+        grid = complete_grid(grid, smooth, gx, gy, max_dim, p)
+        grids.append(grid)
+    # Larger grids first, so that a full board wins its name over a fragment.
+    grids.sort(key=len, reverse=True)
+    for grid in grids:
+        uv = np.array(list(grid.keys()), dtype=np.int64)
+        xy = np.array(list(grid.values()), dtype=np.float64)
+        span = uv.max(axis=0) - uv.min(axis=0) + 1
+        full = len(uv) == span[0] * span[1]
+        boards = [b for b in by_size.get(frozenset(int(s) for s in span), []) if b.name not in used_boards]
+        if not full or not boards:
+            _note_near_miss(debug, span, full, len(uv), target)
+            continue
+        board = boards[0]
+        ids = assign_ids(uv, xy, smooth, board)
+        if ids is None:
+            debug.notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
+            continue
+        # Final sub-pixel pass with the window from the grid's own spacing.
+        xy = refine_corners(smooth, xy, _grid_spacing(uv, xy))
+        order = np.lexsort((ids[:, 0], ids[:, 1]))
+        tree = cKDTree(pts)
+        d, j = tree.query(xy[order])
+        q = np.where(d < 1.0, quality[np.minimum(j, len(quality) - 1)], 0.5)
+        debug.detections.append(Detection(board.name, xy[order], ids[order], q, (board.cols, board.rows)))
+        used_boards.add(board.name)
+    return debug
+
+
+def _note_near_miss(debug: DetectionDebug, span: np.ndarray, full: bool, n: int, target: Target) -> None:
+    """Record a grid that matched no board: the most common cause is a board-size convention mistake."""
+    sizes = ", ".join(f"{b.cols}x{b.rows}" for b in target.boards)
+    if full:
+        debug.notes.append(f"found a {span[0]}x{span[1]} grid; the target says {sizes} inner corners")
+    elif n >= 12:
+        debug.notes.append(f"found a partial grid of {n} corners spanning {span[0]}x{span[1]}; "
+                           f"the target says {sizes} inner corners")
+
+
+def detect(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> list[Detection]:
+    """Find the target's boards in a uint8 grey or BGR image; an image without a board gives []."""
+    return detect_debug(image, target, params).detections

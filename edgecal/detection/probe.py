@@ -1,0 +1,332 @@
+"""The circular probe of the paper (Eq. 1-5), as numba kernels over all candidates of a frame.
+
+For each candidate the probe sums the edge signal along ``n_angles`` rays from ``r_in`` to the probe
+radius (Eq. 1), smooths the circular profile, takes its four strongest local maxima as the board's border
+directions, checks that opposite ones are 180 deg apart (Eq. 2-3) and that the four sectors between them
+alternate black/white (Eq. 4-5).
+
+Going past the paper: the edge signal is, by default, the gradient component *across* the ray
+(|g . n| with n the ray's normal) instead of the plain magnitude |g|. Along a border line the gradient is
+across the ray, so both agree there; but where a ray crosses other edges the gradient points along the ray
+and the across-component is ~0, so the four border peaks stand out far more for small or blurred squares.
+``edge_mode=0`` gives the paper's magnitude.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+EDGE_MAGNITUDE = 0  # the paper's Eq. (1): |g|
+EDGE_ACROSS_RAY = 1  # edgecal's default: |g . n|, n normal to the ray
+
+# Columns of the per-candidate measurement array returned by probe_candidates.
+M_ANGLE_ERR = 0     # mean |theta_diff| of Eq. (2), radians
+M_CONTRAST = 1      # mean(white sectors) - mean(black sectors), grey levels
+M_PEAK_RATIO = 2    # weakest border peak / weakest valley of the profile
+M_SIGN_FRAC = 3     # smallest sector majority fraction of Eq. (4)
+M_FIRST_SIGN = 4    # +1 if the sector after theta_1 is white, -1 if black
+N_MEASURES = 5
+
+
+@njit(cache=True, nogil=True)
+def _bilinear(img: np.ndarray, x: float, y: float) -> float:
+    """Bilinear sample at (x, y), OpenCV convention (integer = pixel centre); 0 outside the image."""
+    h, w = img.shape
+    if x < 0.0 or y < 0.0 or x > w - 1.0 or y > h - 1.0:
+        return 0.0
+    x0 = int(x)
+    y0 = int(y)
+    if x0 >= w - 1:
+        x0 = w - 2
+    if y0 >= h - 1:
+        y0 = h - 2
+    fx = x - x0
+    fy = y - y0
+    top = img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx
+    bottom = img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+@njit(cache=True, nogil=True)
+def _fill_profile(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: float, r_in: float,
+                  edge_mode: int, cos_t: np.ndarray, sin_t: np.ndarray, out: np.ndarray) -> None:
+    """Eq. (1): out[k] = mean edge signal along the ray at angle k from r_in to radius."""
+    n = cos_t.shape[0]
+    n_steps = max(2, int(radius - r_in) + 1)
+    step = (radius - r_in) / (n_steps - 1)
+    for k in range(n):
+        c = cos_t[k]
+        s = sin_t[k]
+        acc = 0.0
+        for i in range(n_steps):
+            r = r_in + i * step
+            sx = x + r * c
+            sy = y + r * s
+            ex = _bilinear(gx, sx, sy)
+            ey = _bilinear(gy, sx, sy)
+            if edge_mode == EDGE_MAGNITUDE:
+                acc += math.sqrt(ex * ex + ey * ey)
+            else:
+                acc += abs(-ex * s + ey * c)
+        out[k] = acc / n_steps
+
+
+@njit(cache=True, nogil=True)
+def probe_profiles(gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, radii: np.ndarray, n_angles: int,
+                   r_in: float, edge_mode: int) -> np.ndarray:
+    """Eq. (1) for every point: an (M, n_angles) array of circular edge profiles (unsmoothed)."""
+    m = pts.shape[0]
+    out = np.zeros((m, n_angles))
+    theta = np.arange(n_angles) * (2.0 * math.pi / n_angles)
+    cos_t = np.cos(theta)
+    sin_t = np.sin(theta)
+    for i in range(m):
+        _fill_profile(gx, gy, pts[i, 0], pts[i, 1], radii[i], r_in, edge_mode, cos_t, sin_t, out[i])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _border_directions(profile: np.ndarray, smooth: np.ndarray, dirs: np.ndarray) -> float:
+    """The four strongest local maxima of the smoothed circular profile, sorted, into ``dirs`` (radians).
+
+    Returns the ratio weakest-peak / weakest-valley, or 0.0 when there are fewer than four maxima.
+    """
+    n = profile.shape[0]
+    for k in range(n):
+        smooth[k] = 0.25 * profile[(k - 1) % n] + 0.5 * profile[k] + 0.25 * profile[(k + 1) % n]
+    # The four strongest strict local maxima (plateaus count once, at their first bin).
+    best_val = np.full(4, -1.0)
+    best_idx = np.full(4, -1)
+    for k in range(n):
+        a = smooth[(k - 1) % n]
+        b = smooth[k]
+        c = smooth[(k + 1) % n]
+        if b > a and b >= c:
+            # insert into the top-4 list
+            j = 3
+            if b <= best_val[3]:
+                continue
+            while j > 0 and best_val[j - 1] < b:
+                best_val[j] = best_val[j - 1]
+                best_idx[j] = best_idx[j - 1]
+                j -= 1
+            best_val[j] = b
+            best_idx[j] = k
+    if best_idx[3] < 0:
+        return 0.0
+    step = 2.0 * math.pi / n
+    for j in range(4):
+        k = best_idx[j]
+        a = smooth[(k - 1) % n]
+        b = smooth[k]
+        c = smooth[(k + 1) % n]
+        den = a - 2.0 * b + c
+        off = 0.0
+        if den < 0.0:
+            off = 0.5 * (a - c) / den
+            if off > 0.5:
+                off = 0.5
+            elif off < -0.5:
+                off = -0.5
+        ang = (k + off) * step
+        if ang < 0.0:
+            ang += 2.0 * math.pi
+        elif ang >= 2.0 * math.pi:
+            ang -= 2.0 * math.pi
+        dirs[j] = ang
+    dirs.sort()
+    valley = smooth.min()
+    weakest = best_val[3]
+    if valley <= 1e-9:
+        return 1e9
+    return weakest / valley
+
+
+@njit(cache=True, nogil=True)
+def _sector_signs(grey: np.ndarray, x: float, y: float, radius: float, dirs: np.ndarray,
+                  sign_fraction: float, out: np.ndarray) -> None:
+    """Eq. (4)-(5): sample the four sectors, call each + (white) or - (black) against the local mean.
+
+    Writes into out: [contrast, smallest majority fraction, first sign (+1/-1, 0 = no alternation)].
+    """
+    n_ang = 5
+    n_rad = 3
+    r0 = max(1.5, 0.25 * radius)
+    r1 = max(r0 + 1.0, 0.6 * radius)
+    vals = np.empty((4, n_ang * n_rad))
+    total = 0.0
+    for sct in range(4):
+        a0 = dirs[sct]
+        a1 = dirs[(sct + 1) % 4]
+        if sct == 3:
+            a1 += 2.0 * math.pi
+        width = a1 - a0
+        idx = 0
+        for ia in range(n_ang):
+            ang = a0 + width * (0.25 + 0.5 * ia / (n_ang - 1))
+            c = math.cos(ang)
+            s = math.sin(ang)
+            for ir in range(n_rad):
+                r = r0 + (r1 - r0) * ir / (n_rad - 1)
+                v = _bilinear(grey, x + r * c, y + r * s)
+                vals[sct, idx] = v
+                total += v
+                idx += 1
+    m = total / (4 * n_ang * n_rad)
+    signs = np.zeros(4)
+    means = np.zeros(4)
+    min_frac = 1.0
+    for sct in range(4):
+        above = 0
+        below = 0
+        acc = 0.0
+        for i in range(n_ang * n_rad):
+            v = vals[sct, i]
+            acc += v
+            if v > m:
+                above += 1
+            elif v < m:
+                below += 1
+        means[sct] = acc / (n_ang * n_rad)
+        fa = above / (n_ang * n_rad)
+        fb = below / (n_ang * n_rad)
+        if fa >= sign_fraction:
+            signs[sct] = 1.0
+            min_frac = min(min_frac, fa)
+        elif fb >= sign_fraction:
+            signs[sct] = -1.0
+            min_frac = min(min_frac, fb)
+        else:
+            min_frac = min(min_frac, max(fa, fb))
+    alternates = (signs[0] != 0.0 and signs[0] == signs[2] and signs[1] == signs[3]
+                  and signs[0] == -signs[1])
+    out[0] = 0.5 * abs((means[0] + means[2]) - (means[1] + means[3]))
+    out[1] = min_frac
+    out[2] = signs[0] if alternates else 0.0
+
+
+@njit(cache=True, nogil=True)
+def probe_candidates(gx: np.ndarray, gy: np.ndarray, grey: np.ndarray, pts: np.ndarray, radii: np.ndarray,
+                     n_angles: int, r_in: float, edge_mode: int, angle_diff_max: float,
+                     sign_fraction: float, min_contrast: float, min_peak_ratio: float):
+    """Run the whole probe (Eq. 1-5) on every point; one call per frame.
+
+    Returns (ok (M,) bool, dirs (M, 4) radians sorted ascending, measures (M, N_MEASURES)).
+    """
+    m = pts.shape[0]
+    ok = np.zeros(m, dtype=np.bool_)
+    dirs = np.zeros((m, 4))
+    measures = np.zeros((m, N_MEASURES))
+    theta = np.arange(n_angles) * (2.0 * math.pi / n_angles)
+    cos_t = np.cos(theta)
+    sin_t = np.sin(theta)
+    profile = np.empty(n_angles)
+    smooth = np.empty(n_angles)
+    sign_out = np.empty(3)
+    d = np.empty(4)
+    for i in range(m):
+        x = pts[i, 0]
+        y = pts[i, 1]
+        _fill_profile(gx, gy, x, y, radii[i], r_in, edge_mode, cos_t, sin_t, profile)
+        ratio = _border_directions(profile, smooth, d)
+        measures[i, M_PEAK_RATIO] = ratio
+        if ratio <= 0.0:
+            measures[i, M_ANGLE_ERR] = math.pi
+            continue
+        for j in range(4):
+            dirs[i, j] = d[j]
+        err = 0.5 * (abs((d[2] - d[0]) - math.pi) + abs((d[3] - d[1]) - math.pi))
+        measures[i, M_ANGLE_ERR] = err
+        _sector_signs(grey, x, y, radii[i], d, sign_fraction, sign_out)
+        measures[i, M_CONTRAST] = sign_out[0]
+        measures[i, M_SIGN_FRAC] = sign_out[1]
+        measures[i, M_FIRST_SIGN] = sign_out[2]
+        ok[i] = (err < angle_diff_max and ratio >= min_peak_ratio and sign_out[2] != 0.0
+                 and sign_out[0] >= min_contrast)
+    return ok, dirs, measures
+
+
+def probe_profile_reference(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: float,
+                            n_angles: int, r_in: float, edge_mode: int = EDGE_ACROSS_RAY) -> np.ndarray:
+    """Plain-Python Eq. (1) for one point, the reference the kernel is tested against."""
+    h, w = gx.shape
+
+    def sample(img: np.ndarray, sx: float, sy: float) -> float:
+        if sx < 0 or sy < 0 or sx > w - 1 or sy > h - 1:
+            return 0.0
+        x0 = min(int(math.floor(sx)), w - 2)
+        y0 = min(int(math.floor(sy)), h - 2)
+        fx, fy = sx - x0, sy - y0
+        return float((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
+                     + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
+
+    n_steps = max(2, int(radius - r_in) + 1)
+    radii = [r_in + i * (radius - r_in) / (n_steps - 1) for i in range(n_steps)]
+    out = np.zeros(n_angles)
+    for k in range(n_angles):
+        t = 2 * math.pi * k / n_angles
+        c, s = math.cos(t), math.sin(t)
+        vals = []
+        for r in radii:
+            ex, ey = sample(gx, x + r * c, y + r * s), sample(gy, x + r * c, y + r * s)
+            vals.append(math.hypot(ex, ey) if edge_mode == EDGE_MAGNITUDE else abs(-ex * s + ey * c))
+        out[k] = sum(vals) / n_steps
+    return out
+
+
+@njit(cache=True, nogil=True)
+def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_contrast: float) -> np.ndarray:
+    """A cheap first look before the full probe: does a ring around the point cross dark/bright 4 times?
+
+    Samples 24 points on a circle (at 0.5 and 1.0 x ``radii``), classifies each against the ring's mean with
+    a hysteresis of a quarter of ``min_contrast``, and keeps points where either ring alternates exactly four
+    times and spans at least ``min_contrast``. Saves the full probe's cost on most non-corners.
+    """
+    m = pts.shape[0]
+    keep = np.zeros(m, dtype=np.bool_)
+    n = 24
+    vals = np.empty(n)
+    cos_t = np.cos(np.arange(n) * (2.0 * math.pi / n))
+    sin_t = np.sin(np.arange(n) * (2.0 * math.pi / n))
+    for i in range(m):
+        for scale in (0.5, 1.0):
+            r = max(2.0, scale * radii[i])
+            lo = 1e9
+            hi = -1e9
+            mean = 0.0
+            for k in range(n):
+                v = _bilinear(grey, pts[i, 0] + r * cos_t[k], pts[i, 1] + r * sin_t[k])
+                vals[k] = v
+                mean += v
+                lo = min(lo, v)
+                hi = max(hi, v)
+            mean /= n
+            if hi - lo < min_contrast:
+                continue
+            band = 0.25 * min_contrast
+            # Walk the ring twice from a decided sample, counting state changes once around.
+            state = 0
+            start = -1
+            for k in range(n):
+                if abs(vals[k] - mean) > band:
+                    start = k
+                    state = 1 if vals[k] > mean else -1
+                    break
+            if start < 0:
+                continue
+            changes = 0
+            for j in range(1, n + 1):
+                v = vals[(start + j) % n]
+                if v > mean + band and state < 0:
+                    state = 1
+                    changes += 1
+                elif v < mean - band and state > 0:
+                    state = -1
+                    changes += 1
+            if changes == 4:
+                keep[i] = True
+                break
+    return keep

@@ -1,0 +1,41 @@
+"""Step 5: sub-pixel localisation of accepted corners.
+
+cv2.cornerSubPix (gradient orthogonality: every gradient in the window is perpendicular to the vector from
+the corner) is accurate to ~0.01 px on clean corners when its window holds only this corner's two edges,
+so the window follows the local square size: half-width ~0.35 x spacing, 2..12 px.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.001)
+
+
+def subpixel_window(spacing: np.ndarray) -> np.ndarray:
+    """Half-width of the refinement window for each local square size (pixels)."""
+    return np.clip(np.floor(0.35 * np.asarray(spacing)), 2, 12).astype(np.int64)
+
+
+def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Refined copies of ``pts`` (M, 2); points whose refinement runs away keep their start position."""
+    out = np.array(pts, dtype=np.float32).reshape(-1, 1, 2)
+    if len(out) == 0:
+        return out.reshape(-1, 2).astype(np.float64)
+    half = subpixel_window(spacing)
+    h, w = smooth.shape
+    for hw in np.unique(half):
+        sel = np.nonzero(half == hw)[0]
+        # cornerSubPix needs the window inside the image.
+        inside = ((out[sel, 0, 0] > hw + 1) & (out[sel, 0, 0] < w - hw - 2)
+                  & (out[sel, 0, 1] > hw + 1) & (out[sel, 0, 1] < h - hw - 2))
+        sel = sel[inside]
+        if len(sel) == 0:
+            continue
+        block = out[sel].copy()
+        cv2.cornerSubPix(smooth, block, (int(hw), int(hw)), (-1, -1), _CRITERIA)
+        moved = np.linalg.norm(block[:, 0] - out[sel, 0], axis=1)
+        good = moved < max(1.5, 0.5 * hw)
+        out[sel[good]] = block[good]
+    return out.reshape(-1, 2).astype(np.float64)
