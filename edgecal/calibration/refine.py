@@ -52,7 +52,7 @@ class RefineOptions:
 
     distortion: str = "k1k2"
     loss_scale_px: float = 1.0       # Huber: residuals above this count linearly
-    outlier_sigmas: float = 4.0      # drop corners this many noise sigmas out ...
+    outlier_sigmas: float = 5.0      # drop corners this many noise sigmas out ...
     outlier_min_px: float = 0.5      # ... and at least this far from their reprojection
     max_rounds: int = 3
     fix_principal_point: bool = False

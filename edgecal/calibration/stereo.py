@@ -78,7 +78,8 @@ def reconstruction_error(cal: Calibration) -> Reconstruction:
 
 
 def rectify(cal: Calibration) -> Rectification:
-    """cv2.stereoRectify of the calibrated rig and the vertical disparity of the rectified corners."""
+    """cv2.stereoRectify of the calibrated rig and the vertical disparity of the rectified corners (in
+    pixels of the original cameras)."""
     (k1, d1), (k2, d2) = [(c.camera_matrix, c.dist_coeffs) for c in cal.cameras]
     r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(k1, d1, k2, d2, tuple(cal.image_size), cal.rotation,
                                                 np.ravel(cal.translation_mm).reshape(3, 1), alpha=0)
@@ -86,8 +87,10 @@ def rectify(cal: Calibration) -> Rectification:
     for v in range(len(cal.view_poses)):
         px_l, px_r, _, _ = _matched(cal, v)
         if len(px_l):
-            yl = cv2.undistortPoints(px_l.reshape(-1, 1, 2), k1, d1, R=r1, P=p1).reshape(-1, 2)[:, 1]
-            yr = cv2.undistortPoints(px_r.reshape(-1, 1, 2), k2, d2, R=r2, P=p2).reshape(-1, 2)[:, 1]
-            dy.append(yl - yr)
+            # Rectified normalised rows, scaled back to the cameras' own pixels: the rectified
+            # images' focal length depends on alpha and is not what the detector saw.
+            yl = cv2.undistortPoints(px_l.reshape(-1, 1, 2), k1, d1, R=r1).reshape(-1, 2)[:, 1]
+            yr = cv2.undistortPoints(px_r.reshape(-1, 1, 2), k2, d2, R=r2).reshape(-1, 2)[:, 1]
+            dy.append((yl - yr) * 0.5 * (k1[1, 1] + k2[1, 1]))
     d = np.concatenate(dy) if dy else np.zeros(1)
     return Rectification(r1, r2, p1, p2, q, float(np.sqrt(np.mean(d ** 2))), float(np.abs(d).max()))

@@ -119,6 +119,7 @@ class Calibration:
     dropped: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     init: dict[str, dict[str, float]] = field(default_factory=dict)  # camera -> method -> RMS after refinement
+    view_index: list[int] = field(default_factory=list)  # input image (pair) of each view, planar case
 
     @property
     def is_stereo(self) -> bool:

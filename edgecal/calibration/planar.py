@@ -1,0 +1,153 @@
+"""Planar multi-view calibration (mono and stereo) from many images of one flat board.
+
+OpenCV does the solving (calibrateCamera, stereoCalibrate); edgecal checks that the views cover the
+image, rejects views that fit much worse than the others, and computes every parameter's standard
+deviation with its own refinement (refine.py) started at OpenCV's optimum.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from edgecal.calibration.checks import DegenerateInput
+from edgecal.calibration.refine import (DISTORTION_MODELS, RefineOptions, calibration_from_result,
+                                        observations_for, refine)
+from edgecal.calibration.settings import PlanarSettings
+from edgecal.calibration.stereo import finish_stereo
+from edgecal.calibration.types import Calibration, Camera, CornerSet, Pose
+
+MIN_CORNERS_PER_VIEW = 6
+
+
+def coverage(corners: list[CornerSet], image_size: tuple[int, int], cells: tuple[int, int] = (8, 6)) -> float:
+    """Share of an ``cells`` grid over the image that holds at least one corner of some view."""
+    hit = np.zeros((cells[1], cells[0]), dtype=bool)
+    for cs in corners:
+        if len(cs):
+            ix = np.clip((cs.image_px[:, 0] / image_size[0] * cells[0]).astype(int), 0, cells[0] - 1)
+            iy = np.clip((cs.image_px[:, 1] / image_size[1] * cells[1]).astype(int), 0, cells[1] - 1)
+            hit[iy, ix] = True
+    return float(hit.mean())
+
+
+def opencv_flags(distortion: str) -> int:
+    """calibrateCamera flags that free exactly the distortion terms of ``distortion``."""
+    free = DISTORTION_MODELS[distortion]
+    flags = 0
+    if 0 not in free:
+        flags |= cv2.CALIB_FIX_K1
+    if 1 not in free:
+        flags |= cv2.CALIB_FIX_K2
+    if 2 not in free:
+        flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    if 4 not in free:
+        flags |= cv2.CALIB_FIX_K3
+    return flags
+
+
+def _board_points(cs: CornerSet) -> np.ndarray:
+    """Board-plane points for OpenCV: the target points of a flat board with z = 0."""
+    obj = cs.object_mm.astype(np.float32).copy()
+    if np.abs(obj[:, 2]).max() > 1e-9:
+        raise DegenerateInput("planar calibration needs a flat board (all z = 0 in the board frame)")
+    return obj
+
+
+def _calibrate_opencv(views: list[CornerSet], image_size: tuple[int, int], flags: int):
+    obj = [_board_points(v) for v in views]
+    img = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in views]
+    rms, k, d, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), None, None, flags=flags)
+    per_view = []
+    for o, i, r, t in zip(obj, img, rvecs, tvecs):
+        p, _ = cv2.projectPoints(o, r, t, k, d)
+        per_view.append(float(np.sqrt(np.mean(np.sum((p - i).reshape(-1, 2) ** 2, axis=1)))))
+    return k, np.ravel(d)[:5], rvecs, tvecs, np.array(per_view)
+
+
+def _usable(views: list[CornerSet]) -> list[int]:
+    return [i for i, v in enumerate(views) if len(v) >= MIN_CORNERS_PER_VIEW]
+
+
+def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] | None,
+                     image_size: tuple[int, int], options: RefineOptions = RefineOptions(),
+                     planar: PlanarSettings = PlanarSettings()) -> Calibration:
+    """Mono (``views_right`` None) or stereo calibration from views of one flat board.
+
+    Stereo views are pairs matched by order; a pair is used when the board is found in both images.
+    Raises DegenerateInput naming what is missing (too few views).
+    """
+    stereo = views_right is not None
+    notes: list[str] = []
+    if stereo:
+        if len(views_left) != len(views_right):
+            raise DegenerateInput(f"{len(views_left)} left and {len(views_right)} right images: pairs are "
+                                  f"matched by order, give the same number of each")
+        keep = []
+        for i, (a, b) in enumerate(zip(views_left, views_right)):
+            common = set(a.keys) & set(b.keys)
+            if len(common) >= MIN_CORNERS_PER_VIEW:
+                keep.append(i)
+            else:
+                notes.append(f"pair {i}: board not seen in both images, skipped")
+        # stereoCalibrate needs the same corners in both images of a pair
+        pairs = []
+        for i in keep:
+            a, b = views_left[i], views_right[i]
+            common = [k for k in a.keys if k in set(b.keys)]
+            ia = [a.keys.index(k) for k in common]
+            ib = [b.keys.index(k) for k in common]
+            pairs.append((CornerSet(a.object_mm[ia], a.image_px[ia], tuple(common)),
+                          CornerSet(b.object_mm[ib], b.image_px[ib], tuple(common))))
+        cams_views = [[p[0] for p in pairs], [p[1] for p in pairs]]
+        index = keep
+    else:
+        index = _usable(views_left)
+        for i in set(range(len(views_left))) - set(index):
+            notes.append(f"view {i}: board not found, skipped")
+        cams_views = [[views_left[i] for i in index]]
+    what = "stereo pairs" if stereo else "views"
+    if len(index) < planar.min_views:
+        raise DegenerateInput(f"the board was found in only {len(index)} {what}; planar calibration needs at least "
+                              f"{planar.min_views} (tilt the board differently in each)")
+    flags = opencv_flags(options.distortion)
+    # Reject views that fit far worse than the rest (a blurred or misdetected image), then solve again.
+    for _ in range(2):
+        per_cam = [_calibrate_opencv(v, image_size, flags) for v in cams_views]
+        worst = np.max([pc[4] for pc in per_cam], axis=0)
+        limit = planar.max_view_rms_factor * max(float(np.median(worst)), 0.05)
+        bad = np.flatnonzero(worst > limit)
+        if not len(bad) or len(index) - len(bad) < planar.min_views:
+            break
+        for b in bad:
+            notes.append(f"{what[:-1]} {index[b]}: RMS {worst[b]:.2f} px > {limit:.2f} px, rejected")
+        good = [i for i in range(len(index)) if i not in set(bad)]
+        cams_views = [[v[i] for i in good] for v in cams_views]
+        index = [index[i] for i in good]
+    for c, v in enumerate(cams_views):
+        cov = coverage(v, image_size)
+        notes.append(f"{'left' if c == 0 else 'right' if stereo else 'camera'} coverage {100 * cov:.0f} % of the image")
+        if cov < planar.min_coverage:
+            notes.append(f"WARNING: the corners cover only {100 * cov:.0f} % of the image (< "
+                         f"{100 * planar.min_coverage:.0f} %): distortion at the edges is extrapolated; "
+                         f"add views with the board near the corners")
+    cameras = [Camera(pc[0], pc[1]) for pc in per_cam]
+    view_poses = [Pose(np.ravel(r), np.ravel(t)) for r, t in zip(per_cam[0][2], per_cam[0][3])]
+    rigs: list[Pose] = []
+    if stereo:
+        obj = [_board_points(v) for v in cams_views[0]]
+        img_l = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in cams_views[0]]
+        img_r = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in cams_views[1]]
+        out = cv2.stereoCalibrate(obj, img_l, img_r, cameras[0].camera_matrix, cameras[0].dist_coeffs,
+                                  cameras[1].camera_matrix, cameras[1].dist_coeffs, tuple(image_size),
+                                  flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
+        _, k1, d1, k2, d2, r, t = out[:7]
+        cameras = [Camera(k1, np.ravel(d1)[:5]), Camera(k2, np.ravel(d2)[:5])]
+        rigs = [Pose.from_rt(r, np.ravel(t))]
+        notes.append(f"OpenCV stereoCalibrate RMS {out[0]:.3f} px")
+    corners = cams_views
+    res = refine(observations_for(corners), cameras, view_poses, rigs, options)
+    cal = calibration_from_result("planar-stereo" if stereo else "planar-mono", image_size, corners, res)
+    cal.view_index = list(index)
+    cal.notes = notes + cal.notes + [f"{len(index)} {what} used: {', '.join(str(i) for i in index)}"]
+    return finish_stereo(cal) if stereo else cal
