@@ -33,6 +33,8 @@ test: system-deps $(VENV)/.installed
 	$(PY) -m pytest -q
 
 bench: $(VENV)/.installed
+	$(PY) -m pip install --quiet -e '.[bench]'
+	$(PY) -m pip install --quiet --no-deps checkerboard
 	$(PY) bench/detect.py
 
 clean:

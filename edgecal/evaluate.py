@@ -108,15 +108,15 @@ class ImageScore:
     """Scores of all detections in one image.
 
     ``matches[i]`` is the match of truth board i (None when no detection was assigned to it);
-    ``false_boards`` counts detections that lie on no truth board; ``duplicates`` counts detections
-    that lie on a truth board but were not assigned to it (another detection matched it better, or
-    their grid size cannot be that board's).
+    ``false_boards`` counts detections that lie on no truth board; ``partial`` counts detections that
+    lie on a truth board without being its complete, correctly ordered match (a sub-grid, a grid of
+    another size, a mis-ordering, or a second detection of a board already matched).
     """
 
     n_truth: int
     matches: list[BoardMatch | None] = field(default_factory=list)
     false_boards: int = 0
-    duplicates: int = 0
+    partial: int = 0
 
     @property
     def n_found(self) -> int:
@@ -240,12 +240,13 @@ def score_image(found: Sequence[FoundGrid], truth: GroundTruth, policy: str = "b
     """Assign detections to truth boards one-to-one and score them.
 
     A detection goes to the truth board it lies on most (at least half of its corners near that
-    board's corners); among several detections on one board the best match wins, the others are
-    duplicates. Detections that lie on no board are false boards. ``min_fraction`` defaults to 1.0 for
-    exact truth and 0.9 for reference corners.
+    board's corners); among several detections on one board the best match wins. Detections that lie
+    on no board are false boards; the rest that are not a found match are partial. ``min_fraction``
+    defaults to 1.0 for exact truth and 0.75 for reference corners (OCamCalib's points hold up to a
+    fifth of off-corner points in some views).
     """
     if min_fraction is None:
-        min_fraction = 1.0 if truth.exact else 0.9
+        min_fraction = 1.0 if truth.exact else 0.75
     score = ImageScore(n_truth=len(truth.boards), matches=[None] * len(truth.boards))
     claims: list[tuple[tuple[int, int, float], int, BoardMatch | None]] = []
     for f in found:
@@ -261,8 +262,10 @@ def score_image(found: Sequence[FoundGrid], truth: GroundTruth, policy: str = "b
     for _, b, m in claims:
         if score.matches[b] is None and m is not None:
             score.matches[b] = m
+            if not m.found:
+                score.partial += 1
         else:
-            score.duplicates += 1
+            score.partial += 1
     return score
 
 

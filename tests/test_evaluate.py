@@ -56,7 +56,7 @@ def test_identity_detection_is_found_and_rms_is_the_noise():
     expected = np.sqrt(np.mean(np.sum(noise ** 2, axis=1)))
     assert corner_rms(m.errors) == pytest.approx(expected)
     s = score_image([found], truth_of(tb))
-    assert s.n_found == 1 and s.false_boards == 0 and s.duplicates == 0
+    assert s.n_found == 1 and s.false_boards == 0 and s.partial == 0
 
 
 def test_rotated_numbering_is_the_same_board_but_a_mirror_is_not():
@@ -119,7 +119,7 @@ def test_false_boards_and_duplicates():
     good = FoundGrid(tb.corners, tb.ids, (5, 4))
     elsewhere = FoundGrid(tb.corners + (300.0, 300.0), tb.ids, (5, 4))
     s = score_image([elsewhere, good, good], truth_of(tb))
-    assert s.n_found == 1 and s.false_boards == 1 and s.duplicates == 1
+    assert s.n_found == 1 and s.false_boards == 1 and s.partial == 1
 
     negative = score_image([good], truth_of())
     assert negative.n_truth == 0 and negative.false_boards == 1 and negative.n_found == 0
@@ -135,17 +135,20 @@ def test_multi_board_image_assigns_each_detection_to_its_board():
     assert len(s.found_errors()) == 29 and np.allclose(s.found_errors(), 0.0)
     only_one = score_image(found[:1], truth_of(a, b))
     assert only_one.n_found == 1 and only_one.matches[0] is None
+    sub = FoundGrid(a.corners[:10], a.ids[:10], (5, 4), complete=False)
+    s = score_image([sub], truth_of(a, b))
+    assert s.n_found == 0 and s.partial == 1 and s.false_boards == 0
 
 
 def test_rough_reference_tolerates_a_few_off_corner_points():
     tb = truth_board()
     moved = tb.corners.copy()
-    moved[0] += (9.0, 0.0)  # a bad reference point
+    moved[:4] += (9.0, 0.0)  # bad reference points: 4 of 20 still leaves 80 % agreeing
     ref = TruthBoard(tb.name, tb.cols, tb.rows, tb.ids, moved)
     found = [FoundGrid(tb.corners, tb.ids, (5, 4))]
     assert score_image(found, truth_of(ref, exact=True)).n_found == 0
     rough = score_image(found, truth_of(ref, exact=False))
-    assert rough.n_found == 1 and len(rough.found_errors()) == 19
+    assert rough.n_found == 1 and len(rough.found_errors()) == 16
 
 
 def test_corner_rms_of_known_errors():

@@ -1,0 +1,642 @@
+#!/usr/bin/env python3
+"""Detection benchmark: edgecal against the reference detectors on the same images, single thread.
+
+    .venv/bin/python bench/detect.py [--sets planar,hard,real/*] [--detectors edgecal,opencv] \
+        [--repeat 3] [--json out/bench.json] [--force]
+
+Per set and detector it prints: boards found with all corners correctly ordered (and the rate), false
+boards (detections lying on no true board; on negatives every detection is one), corner RMS against
+ground truth (or reference corners) over the found boards, median and p90 ms per image, and the ratio
+of each to edgecal. The first call of every detector (numba JIT, lazy initialisation) is timed apart
+and printed as warm-up; it is not in the per-image times. Sets whose data is absent are skipped.
+
+Scoring (edgecal.evaluate): edgecal must number boards as the truth does, up to the board's own
+symmetries; the references know nothing of our numbering, so any grid symmetry is accepted for them.
+OpenCV's detectors take one board size per call and return at most one board; they are called once per
+distinct board size of the target. The libcbdetect binding reports how many boards it saw but returns
+the corners of one only.
+"""
+
+from __future__ import annotations
+
+import os
+
+# Single thread everywhere, before numpy/numba/OpenCV are imported.
+for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import fnmatch  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+import traceback  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Callable  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+cv2.setNumThreads(1)
+
+from edgecal.errors import EdgecalError  # noqa: E402
+from edgecal.evaluate import (  # noqa: E402
+    FoundGrid,
+    GroundTruth,
+    ImageScore,
+    corner_rms,
+    grid_is_plausible,
+    load_ground_truth,
+    load_ocamcalib_json,
+    load_opencv_corners_dat,
+    percentile,
+    score_image,
+    truth_targets,
+)
+from edgecal.images import IMAGE_SUFFIXES, load_grey  # noqa: E402
+from edgecal.targets import Board, Target, planar_target  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = Path(os.environ.get("EDGECAL_DATA", REPO.parent / "shared" / "data"))
+
+SYNTHETIC_SETS = ("planar", "hard", "multi", "box_stereo", "negatives")
+
+#: Real photographs: board size (inner corners cols x rows, from each folder's SOURCE.md) and where
+#: reference corners come from. None: several boards of sizes SOURCE.md does not give; only counted.
+REAL_SETS: dict[str, dict] = {
+    "opencv_stereo_9x6": {"board": (9, 6)},
+    "opencv_testdata_chess1": {"board": (5, 7), "reference": "chess_corners1.dat"},
+    "ocamcalib_scaramuzza_fisheye190": {"board": (6, 7), "reference": "Fisheye190Pts.json"},
+    "ocamcalib_urban_fisheye1": {"board": (6, 8)},
+    "libcbdetect_examples": {"board": None},
+    "ortho3_box_stereo": {"board": None},
+}
+
+#: The target used on synthetic negatives (no board in the scene): the planar set's board.
+NEGATIVE_BOARD = (9, 6)
+
+
+# ----------------------------------------------------------------------------------------------------
+# Data
+
+
+@dataclass
+class Item:
+    """One image of a set: the grey image, the target to look for, and what is known about it.
+
+    ``truth`` is exact ground truth or reference corners (None if unknown); ``expect`` the board size
+    whose detection is checked for plausibility when there is no truth.
+    """
+
+    name: str
+    grey: np.ndarray
+    target: Target | None
+    truth: GroundTruth | None
+    expect: tuple[int, int] | None = None
+
+
+@dataclass
+class BenchSet:
+    """A named list of items; ``timing_only`` sets print times only."""
+
+    name: str
+    items: list[Item]
+    note: str = ""
+    timing_only: bool = False
+
+
+def _target_from_truth_json(path: Path) -> Target | None:
+    boards = []
+    for i, b in enumerate(truth_targets(path)):
+        boards.append(Board(str(b.get("name", f"board{i}")), int(b["cols"]), int(b["rows"]),
+                            float(b.get("square_mm", 1.0)),
+                            np.asarray(b.get("origin_mm", [0, 0, 0]), dtype=float),
+                            np.asarray(b.get("x_axis", [1, 0, 0]), dtype=float),
+                            np.asarray(b.get("y_axis", [0, 1, 0]), dtype=float)))
+    return Target(path.stem, tuple(boards), str(path)) if boards else None
+
+
+def synthetic_set(root: Path, name: str) -> BenchSet | None:
+    """A folder of the renderer's PNG + ground-truth JSON pairs (stereo pair files are skipped)."""
+    folder = root / "synthetic" / name
+    if not folder.is_dir():
+        return None
+    items = []
+    for png in sorted(folder.glob("*.png")):
+        js = png.with_suffix(".json")
+        if not js.is_file():
+            continue
+        truth = load_ground_truth(js)
+        target = _target_from_truth_json(js) or planar_target(*NEGATIVE_BOARD)
+        items.append(Item(png.name, load_grey(png), target, truth))
+    return BenchSet(f"synthetic/{name}", items) if items else None
+
+
+def real_set(root: Path, name: str) -> BenchSet | None:
+    """A folder of real photographs, with the board size of REAL_SETS and reference corners if any."""
+    folder = root / "real" / name
+    spec = REAL_SETS[name]
+    if not folder.is_dir():
+        return None
+    files = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+    refs: dict[str, GroundTruth] = {}
+    ref_name = spec.get("reference")
+    if ref_name and (folder / ref_name).is_file():
+        if ref_name.endswith(".dat"):
+            img = files[0]
+            grey = load_grey(img)
+            cols, rows = spec["board"]
+            refs[img.name] = load_opencv_corners_dat(folder / ref_name, img.name,
+                                                     (grey.shape[1], grey.shape[0]), cols, rows)
+        else:
+            refs = load_ocamcalib_json(folder / ref_name)
+    board = spec["board"]
+    items = []
+    for f in files:
+        grey = load_grey(f)
+        target = planar_target(*board) if board else None
+        items.append(Item(f.name, grey, target, refs.get(f.name), expect=board))
+    note = ""
+    if refs:
+        note = f"reference corners for {len(refs)} of {len(items)} images (not exact truth)"
+    if board is None:
+        note = "several boards of unknown size: boards reported are counted, nothing is scored"
+    return BenchSet(f"real/{name}", items, note) if items else None
+
+
+def timing_set(sets: list[BenchSet], size: tuple[int, int] = (1280, 800)) -> BenchSet | None:
+    """All loaded images of ``size`` with a target: the speed target's frames."""
+    items = [it for s in sets if not s.timing_only for it in s.items
+             if it.target is not None and (it.grey.shape[1], it.grey.shape[0]) == size]
+    if not items:
+        return None
+    return BenchSet(f"timing/{size[0]}x{size[1]}", items, "timing only: the images above of that size",
+                    timing_only=True)
+
+
+def rendered_sets() -> list[BenchSet]:
+    """Sets rendered on the fly by edgecal.synth (a scale sweep), when the renderer is available."""
+    try:
+        from edgecal.synth import scenes  # noqa: F401
+    except ImportError:
+        return []
+    return []
+
+
+# ----------------------------------------------------------------------------------------------------
+# Detectors
+
+
+def _distinct_sizes(target: Target) -> list[tuple[int, int]]:
+    sizes: list[tuple[int, int]] = []
+    for b in target.boards:
+        if (b.cols, b.rows) not in sizes:
+            sizes.append((b.cols, b.rows))
+    return sizes
+
+
+def _row_major_ids(cols: int, rows: int) -> np.ndarray:
+    k = np.arange(cols * rows)
+    return np.stack([k % cols, k // cols], axis=1).astype(np.int64)
+
+
+def _subpix_half_window(corners: np.ndarray) -> int:
+    """cornerSubPix half window from the corner spacing (the usual fixed 11 swallows small squares)."""
+    d = np.linalg.norm(corners[:, None] - corners[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    spacing = float(np.percentile(d.min(axis=1), 10))
+    return int(np.clip(spacing * 0.5, 2, 11))
+
+
+_SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01)
+
+
+def detect_opencv(grey: np.ndarray, target: Target) -> tuple[list[FoundGrid], int]:
+    """cv2.findChessboardCorners (adaptive threshold, normalise) + cornerSubPix, once per board size."""
+    out = []
+    for cols, rows in _distinct_sizes(target):
+        ok, c = cv2.findChessboardCorners(grey, (cols, rows),
+                                          cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not ok:
+            continue
+        w = _subpix_half_window(c.reshape(-1, 2))
+        c = cv2.cornerSubPix(grey, c, (w, w), (-1, -1), _SUBPIX_CRITERIA)
+        out.append(FoundGrid(c.reshape(-1, 2).astype(np.float64), _row_major_ids(cols, rows), (cols, rows)))
+    return out, len(out)
+
+
+def detect_opencv_sb(grey: np.ndarray, target: Target) -> tuple[list[FoundGrid], int]:
+    """cv2.findChessboardCornersSB (exhaustive, accuracy), once per board size."""
+    out = []
+    for cols, rows in _distinct_sizes(target):
+        ok, c = cv2.findChessboardCornersSB(grey, (cols, rows),
+                                            cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+        if ok:
+            out.append(FoundGrid(c.reshape(-1, 2).astype(np.float64), _row_major_ids(cols, rows),
+                                 (cols, rows)))
+    return out, len(out)
+
+
+def make_libcbdetect() -> Callable:
+    """The PyPI ``libcbdetect`` binding (module libCBDetect): size-free, one board's corners per call."""
+    import libCBDetect
+
+    def detect(grey: np.ndarray, target: Target | None) -> tuple[list[FoundGrid], int]:
+        h, w = grey.shape
+        cb = libCBDetect.Checkerboard()
+        cb.show_processing = False
+        cb.array_norm_to_image(grey.astype(np.float64).ravel() / 255.0, h, w)
+        cb.find_corners()
+        cb.find_board_from_corners()
+        rows, cols = int(cb.rows), int(cb.cols)
+        if rows * cols == 0:
+            return [], 0
+        # number_of_boards reads one less than the boards found (the index of the last one);
+        # rows/cols and get_board_corners describe that last board only
+        reported = int(cb.number_of_boards) + 1
+        u, v = np.zeros(rows * cols), np.zeros(rows * cols)
+        cb.get_board_corners(u, v)
+        xy = np.stack([u, v], axis=1)
+        ok = np.isfinite(xy).all(axis=1) & (xy > 0).all(axis=1)
+        # listed row by row, `cols` corners per row
+        return [FoundGrid(xy[ok], _row_major_ids(cols, rows)[ok], (cols, rows), bool(ok.all()))], reported
+
+    return detect
+
+
+def make_checkerboard() -> Callable:
+    """The PyPI ``checkerboard`` package (detect_checkerboard), once per board size."""
+    from checkerboard import detect_checkerboard
+
+    def detect(grey: np.ndarray, target: Target) -> tuple[list[FoundGrid], int]:
+        out = []
+        for cols, rows in _distinct_sizes(target):
+            c, _score = detect_checkerboard(grey, (cols, rows))
+            if c is None:
+                continue
+            k = np.arange(cols * rows)
+            # its grid is indexed [col][row]: the row index runs fastest
+            ids = np.stack([k // rows, k % rows], axis=1).astype(np.int64)
+            out.append(FoundGrid(np.asarray(c, dtype=np.float64).reshape(-1, 2), ids, (cols, rows)))
+        return out, len(out)
+
+    return detect
+
+
+def make_edgecal() -> Callable:
+    """edgecal.detect(image, target) -> list[Detection]."""
+    try:
+        from edgecal import detect as edgecal_detect  # type: ignore[attr-defined]
+    except ImportError:
+        from edgecal.detection import detect as edgecal_detect  # type: ignore[attr-defined]
+
+    def detect(grey: np.ndarray, target: Target) -> tuple[list[FoundGrid], int]:
+        dets = edgecal_detect(grey, target)
+        out = [FoundGrid(np.asarray(d.corners, dtype=np.float64).reshape(-1, 2),
+                         np.asarray(d.ids, dtype=np.int64).reshape(-1, 2),
+                         (int(d.grid[0]), int(d.grid[1])), bool(d.complete)) for d in dets]
+        return out, len(out)
+
+    return detect
+
+
+@dataclass
+class Detector:
+    """A detector under test: ``run(grey, target) -> (found grids, boards reported)``."""
+
+    name: str
+    run: Callable | None
+    policy: str  # scoring policy of edgecal.evaluate
+    needs_target: bool = True
+    status: str = "ok"
+    warmup_ms: float = float("nan")
+
+
+DETECTOR_NAMES = ("edgecal", "opencv", "opencv_sb", "libcbdetect", "checkerboard")
+
+
+def load_detectors(names: list[str]) -> list[Detector]:
+    """Build the selected detectors; one that fails to import is kept with its reason and not run."""
+    makers: dict[str, tuple[Callable[[], Callable], str, bool]] = {
+        "edgecal": (make_edgecal, "board", True),
+        "opencv": (lambda: detect_opencv, "grid", True),
+        "opencv_sb": (lambda: detect_opencv_sb, "grid", True),
+        "libcbdetect": (make_libcbdetect, "grid", False),
+        "checkerboard": (make_checkerboard, "grid", True),
+    }
+    out = []
+    for name in names:
+        make, policy, needs_target = makers[name]
+        try:
+            out.append(Detector(name, make(), policy, needs_target))
+        except Exception as exc:  # an optional package missing or broken: say so and go on
+            out.append(Detector(name, None, policy, needs_target,
+                                status=f"unavailable ({type(exc).__name__}: {exc})"))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# Running and scoring
+
+
+@dataclass
+class ImageResult:
+    """One detector on one image."""
+
+    image: str
+    ms: float
+    reported: int
+    score: ImageScore | None
+    plausible: bool | None = None
+    error: str = ""
+    grids: list[tuple[int, int]] = field(default_factory=list)
+
+
+@dataclass
+class SetResult:
+    """One detector on one set."""
+
+    detector: str
+    images: list[ImageResult] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        """Aggregates: found/total boards, false boards, RMS, median/p90 ms, errors."""
+        ms = [r.ms for r in self.images if not r.error]
+        scored = [r.score for r in self.images if r.score is not None]
+        n_truth = sum(s.n_truth for s in scored)
+        n_found = sum(s.n_found for s in scored)
+        plaus = [r.plausible for r in self.images if r.plausible is not None]
+        errs = [s.found_errors() for s in scored]
+        errs = np.concatenate(errs) if errs else np.zeros(0)
+        return {
+            "images": len(self.images),
+            "truth_boards": n_truth + len(plaus),
+            "found": n_found + sum(plaus),
+            "false_boards": sum(s.false_boards for s in scored),
+            "partial": sum(s.partial for s in scored),
+            "reported_boards": sum(r.reported for r in self.images),
+            "rms_px": corner_rms(errs),
+            "corners_scored": int(errs.size),
+            "median_ms": percentile(ms, 50),
+            "p90_ms": percentile(ms, 90),
+            "errors": sum(1 for r in self.images if r.error),
+        }
+
+
+def run_one(det: Detector, item: Item, repeat: int) -> ImageResult:
+    """Time ``det`` on one image (median of ``repeat`` calls) and score its last result."""
+    target = item.target
+    times = []
+    found: list[FoundGrid] = []
+    reported = 0
+    try:
+        for _ in range(max(1, repeat)):
+            t0 = time.perf_counter()
+            found, reported = det.run(item.grey, target)
+            times.append((time.perf_counter() - t0) * 1e3)
+    except Exception as exc:  # a crash in one detector is a result, not the end of the run
+        return ImageResult(item.name, float("nan"), 0, None, error=f"{type(exc).__name__}: {exc}")
+    ms = float(np.median(times))
+    grids = [tuple(int(v) for v in f.grid) for f in found]
+    if item.truth is not None:
+        return ImageResult(item.name, ms, reported, score_image(found, item.truth, det.policy), grids=grids)
+    if item.expect is not None:
+        cols, rows = item.expect
+        ok = any(grid_is_plausible(f) and sorted(f.grid) == sorted((cols, rows)) for f in found)
+        return ImageResult(item.name, ms, reported, None, plausible=ok, grids=grids)
+    return ImageResult(item.name, ms, reported, None, grids=grids)
+
+
+def warm_up(detectors: list[Detector], item: Item) -> None:
+    """First call of each detector (JIT compilation, caches): timed here and left out of the tables."""
+    for det in detectors:
+        if det.run is None:
+            continue
+        t0 = time.perf_counter()
+        try:
+            det.run(item.grey, item.target)
+        except Exception as exc:
+            det.status = f"failed on warm-up: {type(exc).__name__}: {exc}"
+            traceback.print_exc(file=sys.stderr)
+            det.run = None
+            continue
+        det.warmup_ms = (time.perf_counter() - t0) * 1e3
+
+
+def run_set(bset: BenchSet, detectors: list[Detector], repeat: int,
+            done: dict[tuple[int, str], ImageResult]) -> dict[str, SetResult]:
+    """Every detector on every image, interleaved image by image (drift of a shared machine hits all).
+
+    ``done`` holds results by (id of the item, detector): an image already run in another set (the
+    timing set reuses the others' frames) is not run again. Detectors that need a board size skip
+    images without one.
+    """
+    results = {d.name: SetResult(d.name) for d in detectors if d.run is not None}
+    for item in bset.items:
+        for det in detectors:
+            if det.run is None or (det.needs_target and item.target is None):
+                continue
+            key = (id(item), det.name)
+            if key not in done:
+                done[key] = run_one(det, item, repeat)
+            results[det.name].images.append(done[key])
+    return results
+
+
+# ----------------------------------------------------------------------------------------------------
+# Report
+
+
+def _fmt(v: float, digits: int = 1) -> str:
+    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.{digits}f}"
+
+
+def _ratio(v: float, ref: float) -> str:
+    if not (np.isfinite(v) and np.isfinite(ref)) or ref <= 0:
+        return "-"
+    return f"{v / ref:.2f}x"
+
+
+def format_table(bset: BenchSet, results: dict[str, SetResult]) -> str:
+    """The table of one set: one line per detector, ratios against edgecal when it ran."""
+    sums = {name: r.summary() for name, r in results.items()}
+    base = sums.get("edgecal")
+    lines = [f"## {bset.name}  ({len(bset.items)} images{'; ' + bset.note if bset.note else ''})"]
+    if bset.timing_only:
+        lines.append(f"{'detector':<13} {'median ms':>10} {'p90 ms':>9} {'ms/edgecal':>11}")
+    else:
+        lines.append(f"{'detector':<13} {'found':>9} {'rate':>6} {'false':>6} {'part':>4} {'reported':>8} "
+                     f"{'rms px':>7} {'rms/edg':>8} {'median ms':>10} {'p90 ms':>9} {'ms/edgecal':>11}")
+    for name, s in sums.items():
+        if s["images"] == 0:
+            lines.append(f"{name:<13} (not run: needs a board size)")
+            continue
+        ms_ratio = _ratio(s["median_ms"], base["median_ms"]) if base else "-"
+        if bset.timing_only:
+            lines.append(f"{name:<13} {_fmt(s['median_ms']):>10} {_fmt(s['p90_ms']):>9} {ms_ratio:>11}")
+            continue
+        total = s["truth_boards"]
+        found = f"{s['found']}/{total}" if total else "-"
+        rate = f"{100 * s['found'] / total:.0f}%" if total else "-"
+        rms_ratio = _ratio(s["rms_px"], base["rms_px"]) if base else "-"
+        err = f"  ({s['errors']} errors)" if s["errors"] else ""
+        lines.append(f"{name:<13} {found:>9} {rate:>6} {s['false_boards']:>6} {s['partial']:>4} "
+                     f"{s['reported_boards']:>8} {_fmt(s['rms_px'], 3):>7} {rms_ratio:>8} "
+                     f"{_fmt(s['median_ms']):>10} {_fmt(s['p90_ms']):>9} {ms_ratio:>11}{err}")
+    return "\n".join(lines)
+
+
+def machine_line() -> str:
+    """Where the numbers were taken."""
+    return (f"{platform.node()} {platform.machine()}, {os.cpu_count()} cores (shared), "
+            f"Python {platform.python_version()}, OpenCV {cv2.__version__}, numpy {np.__version__}, "
+            f"single thread")
+
+
+def write_json_atomic(path: Path, data: dict, force: bool) -> None:
+    """Write ``data`` to ``path`` via a temp file in the same folder; refuse to overwrite unless force."""
+    if path.exists() and not force:
+        raise EdgecalError(f"{path}: exists; pass --force to overwrite it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=1, default=float)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_safe(v: object) -> object:
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
+
+
+def result_json(bset: BenchSet, results: dict[str, SetResult]) -> dict:
+    """Summary and per-image records of one set."""
+    out: dict = {"images": len(bset.items), "note": bset.note, "timing_only": bset.timing_only,
+                 "detectors": {}}
+    for name, r in results.items():
+        per_image = []
+        for ir in r.images:
+            rec: dict = {"image": ir.image, "ms": _json_safe(ir.ms), "reported": ir.reported,
+                         "grids": [list(g) for g in ir.grids]}
+            if ir.score is not None:
+                rec.update(truth=ir.score.n_truth, found=ir.score.n_found, false=ir.score.false_boards,
+                           partial=ir.score.partial,
+                           rms_px=_json_safe(corner_rms(ir.score.found_errors())))
+            if ir.plausible is not None:
+                rec["plausible"] = ir.plausible
+            if ir.error:
+                rec["error"] = ir.error
+            per_image.append(rec)
+        out["detectors"][name] = {"summary": {k: _json_safe(v) for k, v in r.summary().items()},
+                                  "per_image": per_image}
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------
+# Main
+
+
+def select_sets(root: Path, patterns: list[str]) -> list[BenchSet]:
+    """Load the sets whose names match any of ``patterns`` (fnmatch; a bare name matches its tail)."""
+    names = [f"synthetic/{n}" for n in SYNTHETIC_SETS] + [f"real/{n}" for n in REAL_SETS]
+
+    def wanted(name: str) -> bool:
+        return any(fnmatch.fnmatch(name, p) or fnmatch.fnmatch(name.split("/", 1)[1], p) for p in patterns)
+
+    sets: list[BenchSet] = []
+    for name in names:
+        if not wanted(name):
+            continue
+        kind, short = name.split("/", 1)
+        s = synthetic_set(root, short) if kind == "synthetic" else real_set(root, short)
+        if s is None:
+            print(f"# {name}: absent, skipped", file=sys.stderr)
+            continue
+        sets.append(s)
+    for s in rendered_sets():
+        if wanted(s.name):
+            sets.append(s)
+    if any(fnmatch.fnmatch("timing/1280x800", p) or p == "timing" for p in patterns):
+        # the frames come from the synthetic sets; ones not selected are loaded for this set alone
+        loaded = {x.name for x in sets}
+        extra = [x for n in SYNTHETIC_SETS if f"synthetic/{n}" not in loaded
+                 for x in [synthetic_set(root, n)] if x is not None]
+        t = timing_set(sets + extra)
+        if t is not None:
+            sets.append(t)
+    return sets
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; returns the exit code."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sets", default="*",
+                    help="comma-separated set names or patterns (e.g. planar,real/*,timing); default all")
+    ap.add_argument("--detectors", default=",".join(DETECTOR_NAMES),
+                    help=f"comma-separated subset of {','.join(DETECTOR_NAMES)}")
+    ap.add_argument("--repeat", type=int, default=1, help="timed calls per image (the median is kept)")
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding synthetic/ and real/")
+    ap.add_argument("--json", type=Path, help="also write all results to this JSON file")
+    ap.add_argument("--force", action="store_true", help="overwrite the --json file if it exists")
+    args = ap.parse_args(argv)
+
+    names = [n.strip() for n in args.detectors.split(",") if n.strip()]
+    unknown = [n for n in names if n not in DETECTOR_NAMES]
+    if unknown:
+        print(f"bench: unknown detector(s) {', '.join(unknown)}; choose from {', '.join(DETECTOR_NAMES)}",
+              file=sys.stderr)
+        return 2
+    if args.json and args.json.exists() and not args.force:
+        print(f"bench: {args.json} exists; pass --force to overwrite it", file=sys.stderr)
+        return 2
+    patterns = [p.strip() for p in args.sets.split(",") if p.strip()]
+    if "*" in patterns:
+        patterns.append("timing/*")
+
+    try:
+        sets = select_sets(args.data, patterns)
+    except EdgecalError as exc:
+        print(f"bench: {exc}", file=sys.stderr)
+        return 2
+    if not sets:
+        print("bench: no set selected or present", file=sys.stderr)
+        return 2
+    detectors = load_detectors(names)
+    first = next(it for s in sets for it in s.items if it.target is not None)
+    warm_up(detectors, first)
+
+    print(f"# detection benchmark — {machine_line()}")
+    print(f"# repeat {args.repeat}; times are per image (all calls a detector needs for that image)")
+    print("# found: boards with all corners found and correctly ordered / boards (real sets without"
+          " reference corners: a plausible grid of the board's size); false: detections on no board;"
+          " part: detections on a board that are not its complete match; reported: boards the"
+          " detector reported; rms: over the found boards, against truth or reference corners")
+    for d in detectors:
+        extra = f", warm-up (first call) {d.warmup_ms:.0f} ms" if np.isfinite(d.warmup_ms) else ""
+        print(f"# {d.name}: {d.status}{extra}; scored as '{d.policy}'")
+    report: dict = {"machine": machine_line(), "repeat": args.repeat,
+                    "detectors": {d.name: {"status": d.status, "warmup_ms": _json_safe(d.warmup_ms),
+                                           "policy": d.policy} for d in detectors},
+                    "sets": {}}
+    done: dict[tuple[int, str], ImageResult] = {}
+    for bset in sets:
+        results = run_set(bset, detectors, args.repeat, done)
+        print()
+        print(format_table(bset, results), flush=True)
+        report["sets"][bset.name] = result_json(bset, results)
+    if args.json:
+        write_json_atomic(args.json, report, args.force)
+        print(f"\n# wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
