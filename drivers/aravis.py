@@ -1,0 +1,309 @@
+"""GigE Vision and USB3 Vision cameras through Aravis (gi.repository Aravis 0.8).
+
+``aravis:NAME`` opens the camera NAME: an IP address (opened directly, no network scan), an Aravis
+device id as listed by ``edgecal sources``/``arv-tool-0.8``, or ``fake`` for libaravis's built-in Fake
+camera. Settings: width/height (region at the sensor's top-left), fps, pixel_format (Mono8/10/12/16,
+Bayer 8-bit, RGB8/BGR8: converted to uint8/uint16 grey or BGR), exposure_us, gain_db, trigger
+(free, software, hardware = Line1), packet_size (GigE), buffers.
+
+Timestamps: the device's timestamp (ns) is mapped onto CLOCK_MONOTONIC by the smallest observed
+receive-minus-device offset (the frame that crossed the network fastest), relaxed by 20 ppm so that
+clock drift is followed; the spacing of ``stamp_ns`` is therefore the camera's own.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from edgecal.drivers.base import Frame, Source
+from edgecal.drivers.spec import SourceSpec
+from edgecal.errors import DeviceError
+
+INSTALL_HINT = ("install Debian's gir1.2-aravis-0.8 and PyGObject (pip install 'edgecal[aravis]', which needs "
+                "libgirepository1.0-dev, libcairo2-dev and pkg-config to build)")
+
+# GenICam pixel format -> (numpy dtype, OpenCV conversion to grey/BGR or None, channels in the buffer)
+_FORMATS: dict[str, tuple[type, int | None, int]] = {
+    "Mono8": (np.uint8, None, 1),
+    "Mono10": (np.uint16, None, 1),
+    "Mono12": (np.uint16, None, 1),
+    "Mono16": (np.uint16, None, 1),
+    "BayerRG8": (np.uint8, cv2.COLOR_BayerRGGB2BGR, 1),
+    "BayerGR8": (np.uint8, cv2.COLOR_BayerGRBG2BGR, 1),
+    "BayerGB8": (np.uint8, cv2.COLOR_BayerGBRG2BGR, 1),
+    "BayerBG8": (np.uint8, cv2.COLOR_BayerBGGR2BGR, 1),
+    "RGB8": (np.uint8, cv2.COLOR_RGB2BGR, 3),
+    "BGR8": (np.uint8, None, 3),
+}
+
+_DRIFT_PPM = 20e-6
+
+
+def load_aravis() -> Any:
+    """The gi.repository Aravis module; DeviceError saying what to install when it is missing."""
+    try:
+        import gi
+        gi.require_version("Aravis", "0.8")
+        from gi.repository import Aravis
+    except (ImportError, ValueError) as exc:
+        raise DeviceError(f"the Aravis driver is unavailable ({exc}): {INSTALL_HINT}") from None
+    return Aravis
+
+
+def convert_buffer(data: bytes, width: int, height: int, pixel_format: str) -> np.ndarray:
+    """A GenICam buffer's bytes as a grey (uint8/uint16) or BGR uint8 image (always a copy)."""
+    dtype, code, channels = _FORMATS[pixel_format]
+    arr = np.frombuffer(data, dtype=dtype)
+    n = width * height * channels
+    if arr.size < n:
+        raise DeviceError(f"buffer of {arr.size} pixels is too small for {width}x{height} {pixel_format}")
+    shape = (height, width, channels) if channels > 1 else (height, width)
+    img = arr[:n].reshape(shape)
+    return cv2.cvtColor(img, code) if code is not None else img.copy()
+
+
+class ClockMapper:
+    """Maps a device clock onto CLOCK_MONOTONIC by the smallest (receive - device) offset, allowing drift."""
+
+    def __init__(self) -> None:
+        self.offset_ns: int | None = None
+        self.last_device_ns = 0
+
+    def to_monotonic(self, device_ns: int, recv_ns: int) -> int:
+        """The monotonic time at which the device stamped ``device_ns``."""
+        sample = recv_ns - device_ns
+        if self.offset_ns is None:
+            self.offset_ns = sample
+        else:
+            relaxed = self.offset_ns + int(_DRIFT_PPM * max(0, device_ns - self.last_device_ns))
+            self.offset_ns = min(relaxed, sample)
+        self.last_device_ns = device_ns
+        return device_ns + self.offset_ns
+
+
+class AravisSource(Source):
+    """One GigE Vision / USB3 Vision camera streaming through Aravis."""
+
+    def __init__(self, spec: SourceSpec) -> None:
+        self.spec = spec
+        self.uri = spec.uri
+        self.settings = spec.settings
+        self._camera: Any = None
+        self._stream: Any = None
+        self._lost = threading.Event()
+        self._failed = False
+        self._clock = ClockMapper()
+        self._dropped = 0
+        self._seq = 0
+        self._pixel_format = "Mono8"
+        self._width = self._height = 0
+        self.exposure_us: float | None = None
+        self.gain_db: float | None = None
+        self.info: dict[str, Any] = {}
+
+    @property
+    def dropped(self) -> int:
+        """Buffers that arrived incomplete or were lost, as counted here and by the device's frame ids."""
+        return self._dropped
+
+    def describe(self) -> dict:
+        """URI, device identity and the settings in force."""
+        return {"uri": self.uri, "driver": "aravis", "device": self.info, "pixel_format": self._pixel_format,
+                "width": self._width, "height": self._height, "exposure_us": self.exposure_us,
+                "gain_db": self.gain_db, "settings": self.settings.as_dict()}
+
+    def _name(self) -> str:
+        name = self.spec.target
+        return "Fake_1" if name.lower() == "fake" else name
+
+    def open(self) -> None:
+        """Connect, apply the settings, allocate buffers and start acquisition."""
+        if self._camera is not None:
+            return
+        Aravis = load_aravis()
+        from gi.repository import GLib
+
+        name = self._name()
+        if not name:
+            raise DeviceError("aravis: needs a camera name or IP address (aravis:192.168.1.20, aravis:fake); "
+                              "`edgecal sources` lists them")
+        if name.startswith("Fake_"):
+            Aravis.enable_interface("Fake")
+        try:
+            self._camera = Aravis.Camera.new(name)
+        except GLib.Error as exc:
+            raise DeviceError(f"{self.uri}: cannot open the camera ({exc.message}); check the address/name "
+                              "with `edgecal sources`, the cable and the camera's power") from None
+        try:
+            self._configure(Aravis, GLib)
+            self._start(Aravis, GLib)
+        except BaseException:
+            self.close()
+            raise
+
+    def _configure(self, Aravis: Any, GLib: Any) -> None:
+        cam, s = self._camera, self.settings
+        self.info = {"vendor": cam.get_vendor_name(), "model": cam.get_model_name(),
+                     "device_id": cam.get_device_id()}
+        step = "pixel_format"
+        try:
+            if s.pixel_format:
+                if s.pixel_format not in cam.dup_available_pixel_formats_as_strings():
+                    raise DeviceError(f"{self.uri}: pixel_format {s.pixel_format} is not offered by the camera "
+                                      f"(it offers {', '.join(cam.dup_available_pixel_formats_as_strings())})")
+                cam.set_pixel_format_from_string(s.pixel_format)
+            step = "width/height"
+            if s.width or s.height:
+                _, _, w0, h0 = cam.get_region()
+                cam.set_region(0, 0, s.width or w0, s.height or h0)
+            step = "trigger"
+            if s.trigger == "free":
+                cam.clear_triggers()
+            elif s.trigger == "software":
+                cam.set_trigger("Software")
+            else:
+                cam.set_trigger("Line1")
+            step = "fps"
+            if s.fps and s.trigger == "free":
+                cam.set_frame_rate(s.fps)
+            step = "exposure_us"
+            if s.exposure_us is not None:
+                if cam.is_exposure_auto_available():
+                    cam.set_exposure_time_auto(Aravis.Auto.OFF)
+                cam.set_exposure_time(s.exposure_us)
+            step = "gain_db"
+            if s.gain_db is not None:
+                if cam.is_gain_auto_available():
+                    cam.set_gain_auto(Aravis.Auto.OFF)
+                cam.set_gain(s.gain_db)
+            step = "packet_size"
+            if s.packet_size and cam.is_gv_device():
+                cam.gv_set_packet_size(s.packet_size)
+        except GLib.Error as exc:
+            raise DeviceError(f"{self.uri}: the camera refused {step} ({exc.message})") from None
+        self._pixel_format = cam.get_pixel_format_as_string()
+        if self._pixel_format not in _FORMATS:
+            raise DeviceError(f"{self.uri}: pixel format {self._pixel_format} is not supported "
+                              f"(set pixel_format to one of {', '.join(_FORMATS)})")
+        _, _, self._width, self._height = cam.get_region()
+        self._read_controls()
+
+    def _read_controls(self) -> None:
+        cam = self._camera
+        self.exposure_us = float(cam.get_exposure_time()) if cam.is_exposure_time_available() else None
+        self.gain_db = float(cam.get_gain()) if cam.is_gain_available() else None
+
+    def _start(self, Aravis: Any, GLib: Any) -> None:
+        cam = self._camera
+        try:
+            cam.set_acquisition_mode(Aravis.AcquisitionMode.CONTINUOUS)
+            self._stream = cam.create_stream(None, None)
+            payload = cam.get_payload()
+            for _ in range(self.settings.buffers):
+                self._stream.push_buffer(Aravis.Buffer.new_allocate(payload))
+            device = cam.get_device()
+            # Emitted from Aravis's heartbeat thread when the camera stops answering.
+            device.connect("control-lost", lambda *_: self._lost.set())
+            cam.start_acquisition()
+        except GLib.Error as exc:
+            raise DeviceError(f"{self.uri}: cannot start streaming ({exc.message})") from None
+
+    def set_exposure_us(self, exposure_us: float) -> float:
+        """Change the exposure while streaming; returns the value the camera applied."""
+        return self._set_control("exposure_us", exposure_us)
+
+    def set_gain_db(self, gain_db: float) -> float:
+        """Change the gain while streaming; returns the value the camera applied."""
+        return self._set_control("gain_db", gain_db)
+
+    def _set_control(self, what: str, value: float) -> float:
+        from gi.repository import GLib
+        if self._camera is None:
+            raise DeviceError(f"{self.uri}: not open")
+        try:
+            if what == "exposure_us":
+                self._camera.set_exposure_time(float(value))
+            else:
+                self._camera.set_gain(float(value))
+        except GLib.Error as exc:
+            raise DeviceError(f"{self.uri}: the camera refused {what}={value} ({exc.message})") from None
+        self._read_controls()
+        return float(self.exposure_us if what == "exposure_us" else self.gain_db or 0.0)
+
+    def trigger(self) -> None:
+        """Fire a software trigger (``trigger: software``)."""
+        if self._camera is None:
+            raise DeviceError(f"{self.uri}: not open")
+        self._camera.software_trigger()
+
+    def read(self, timeout_s: float | None = None) -> Frame:
+        """The next complete frame; DeviceError after ``timeout_s`` without one or when the camera is lost."""
+        if self._stream is None:
+            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+        from gi.repository import Aravis
+        timeout = self.settings.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        if self.settings.trigger == "software":
+            self._camera.software_trigger()
+        while True:
+            if self._lost.is_set():
+                self._failed = True
+                raise DeviceError(f"{self.uri}: lost contact with the camera (unplugged or powered off?)")
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self._failed = True
+                raise DeviceError(f"{self.uri}: no frame within {timeout:g} s (camera stopped sending, "
+                                  "unplugged, or waiting for a trigger?)")
+            # Wait in slices so that a lost camera is reported promptly.
+            buf = self._stream.timeout_pop_buffer(int(min(remaining, 0.1) * 1e6))
+            if buf is None:
+                continue
+            recv = time.monotonic_ns()
+            try:
+                if buf.get_status() != Aravis.BufferStatus.SUCCESS:
+                    self._dropped += 1
+                    continue
+                image = convert_buffer(buf.get_data(), buf.get_image_width(), buf.get_image_height(),
+                                       self._pixel_format)
+                device_ns = int(buf.get_timestamp())
+                if device_ns == 0:  # no device timestamp: the host's arrival time (realtime) instead
+                    device_ns = int(buf.get_system_timestamp()) - (time.time_ns() - time.monotonic_ns())
+                stamp = self._clock.to_monotonic(device_ns, recv)
+                frame_id = int(buf.get_frame_id())
+            finally:
+                self._stream.push_buffer(buf)
+            if self._seq and frame_id > self._seq + 1:
+                self._dropped += frame_id - self._seq - 1
+            self._seq = frame_id
+            return Frame(image, stamp, recv, frame_id, self.spec.camera_id, self.exposure_us, self.gain_db)
+
+    def close(self) -> None:
+        """Stop acquisition and drop every reference to the device, also after an error.
+
+        After a failure the camera no longer answers, and libaravis's own teardown (stop acquisition,
+        release control) waits out its GigE Vision retries, several seconds per command. That wait is
+        moved to a background thread so that close() itself returns at once.
+        """
+        if self._camera is None:
+            return
+        # The references live only in this list, which the releasing thread empties.
+        held = [self._stream, self._camera]
+        self._camera = self._stream = None
+        if self._failed or self._lost.is_set():
+            threading.Thread(target=_release, args=(held,), name=f"release {self.uri}", daemon=True).start()
+            return
+        try:
+            held[1].stop_acquisition()
+        except Exception:  # the camera may have gone in the meantime; releasing is what matters
+            pass
+        _release(held)
+
+def _release(objects: list[Any]) -> None:
+    """Drop the last references to Aravis objects (their finalizers talk to the device)."""
+    while objects:
+        objects.pop()

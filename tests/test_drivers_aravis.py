@@ -1,0 +1,179 @@
+"""Aravis against a real GigE Vision fake camera on loopback (arv-fake-gv-camera-0.8), opened by IP.
+
+The fake camera listens on 127.0.0.1 only (never a network scan). One fake camera can own the GigE
+Vision port at a time, so the fixture holds a file lock while its camera runs. These tests must run in
+CI (``make test`` installs the Debian packages and PyGObject); they skip only outside CI.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import pytest
+
+from edgecal.drivers import open_source
+from edgecal.errors import DeviceError
+
+FAKE = "arv-fake-gv-camera-0.8"
+LOCK = Path("/tmp/edgecal-arv-fake-gv.lock")
+
+
+def _require_aravis() -> None:
+    problem = None
+    if shutil.which(FAKE) is None:
+        problem = f"{FAKE} is not installed (Debian package aravis-tools)"
+    else:
+        try:
+            from edgecal.drivers.aravis import load_aravis
+            load_aravis()
+        except DeviceError as exc:
+            problem = str(exc)
+    if problem:
+        if os.environ.get("CI"):
+            pytest.fail(f"Aravis tests must run in CI: {problem}")
+        pytest.skip(problem)
+
+
+class FakeCamera:
+    """A running arv-fake-gv-camera-0.8 process on 127.0.0.1."""
+
+    def __init__(self) -> None:
+        self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", "EDGECAL"], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE)
+        from edgecal.drivers.aravis import load_aravis
+        Aravis = load_aravis()
+        deadline = time.monotonic() + 5.0
+        while True:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"{FAKE} exited: {self.proc.stderr.read().decode(errors='replace')}")
+            try:
+                Aravis.Camera.new("127.0.0.1")  # the GVCP port answers: the camera is up
+                return
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
+
+
+@pytest.fixture
+def gv_lock() -> Iterator[None]:
+    _require_aravis()
+    with open(LOCK, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        yield
+
+
+@pytest.fixture
+def fake_camera(gv_lock: None) -> Iterator[FakeCamera]:
+    cam = FakeCamera()
+    try:
+        yield cam
+    finally:
+        cam.kill()
+
+
+def test_stream_from_the_fake_gige_camera(fake_camera: FakeCamera) -> None:
+    with open_source("aravis:127.0.0.1?fps=50&width=320&height=240&timeout_s=2") as src:
+        frames = [src.read() for _ in range(8)]
+        info = src.describe()
+    assert info["device"]["device_id"] == "EDGECAL" and info["pixel_format"] == "Mono8"
+    assert all(f.image.shape == (240, 320) and f.image.dtype == np.uint8 for f in frames)
+    assert all(f.image.std() > 0 for f in frames)               # a real test pattern, not zeros
+    stamps = np.array([f.stamp_ns for f in frames])
+    assert np.all(np.diff(stamps) > 0)
+    assert 10e6 < np.median(np.diff(stamps)) < 30e6          # 50 fps -> 20 ms from the device's clock
+    now = time.monotonic_ns()
+    assert all(0 <= now - f.stamp_ns < 5e9 and f.stamp_ns <= f.recv_ns + 1e6 for f in frames)  # monotonic clock
+    seqs = [f.seq for f in frames]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+
+
+def test_exposure_change_while_streaming(fake_camera: FakeCamera) -> None:
+    with open_source("aravis:127.0.0.1?fps=50&exposure_us=2000&gain_db=1") as src:
+        before = [src.read() for _ in range(3)]
+        assert before[-1].exposure_us == pytest.approx(2000) and before[-1].gain_db == pytest.approx(1)
+        applied = src.set_exposure_us(8000)
+        assert applied == pytest.approx(8000)
+        after = [src.read() for _ in range(6)]
+    assert after[-1].exposure_us == pytest.approx(8000)
+    # The fake sensor's brightness follows the exposure: the last frames are brighter.
+    assert after[-1].image.mean() > before[-1].image.mean() + 5
+
+
+@pytest.mark.parametrize("fmt, dtype, ndim", [("Mono16", np.uint16, 2), ("BayerRG8", np.uint8, 3),
+                                               ("RGB8", np.uint8, 3)])
+def test_pixel_formats_are_converted(fake_camera: FakeCamera, fmt: str, dtype: type, ndim: int) -> None:
+    with open_source(f"aravis:127.0.0.1?fps=50&width=128&height=96&pixel_format={fmt}") as src:
+        f = src.read()
+    assert f.image.dtype == dtype and f.image.ndim == ndim and f.image.shape[:2] == (96, 128)
+
+
+def test_close_releases_the_camera_for_the_next_user(fake_camera: FakeCamera) -> None:
+    for _ in range(2):   # the second open needs the control channel the first one held
+        with open_source("aravis:127.0.0.1?fps=50") as src:
+            assert src.read().image.size > 0
+    with pytest.raises(DeviceError, match="before open"):
+        src.read()
+
+
+def test_absent_camera_is_a_clear_error(gv_lock: None) -> None:
+    t0 = time.monotonic()
+    with pytest.raises(DeviceError, match=r"aravis:127.0.0.1: cannot open the camera .*edgecal sources"):
+        with open_source("aravis:127.0.0.1"):
+            pass
+    assert time.monotonic() - t0 < 5.0
+
+
+def test_builtin_fake_interface() -> None:
+    _require_aravis()
+    with open_source("aravis:fake?fps=30&width=64&height=48") as src:
+        f = src.read()
+    assert f.image.shape == (48, 64)
+
+
+# Last in this file: libaravis tears the dead connection down in the background for a few seconds.
+def test_camera_killed_mid_stream_raises_after_the_timeout(fake_camera: FakeCamera) -> None:
+    src = open_source("aravis:127.0.0.1?fps=50&timeout_s=0.5")
+    src.open()
+    try:
+        src.read()
+        fake_camera.kill()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match=r"no frame within 0.5 s|lost contact"):
+            for _ in range(100):   # frames already in flight may still arrive
+                src.read()
+        assert time.monotonic() - t0 < 1.5
+    finally:
+        t1 = time.monotonic()
+        src.close()
+    assert time.monotonic() - t1 < 0.5     # close() did not wait for the dead camera
+    assert src._camera is None and src._stream is None
+
+
+@pytest.mark.parametrize("fmt, origin", [("BayerRG8", (0, 0)), ("BayerGR8", (0, 1)), ("BayerGB8", (1, 0)),
+                                          ("BayerBG8", (1, 1))])
+def test_bayer_patterns_decode_to_the_right_colours(fmt: str, origin: tuple[int, int]) -> None:
+    from edgecal.drivers.aravis import convert_buffer
+    # A flat scene of B=50, G=100, R=200 seen through the mosaic named by ``fmt``: ``origin`` is where the
+    # red site sits in the 2x2 cell (row, col).
+    h, w = 8, 8
+    mosaic = np.full((h, w), 100, np.uint8)
+    ry, rx = origin
+    mosaic[ry::2, rx::2] = 200
+    mosaic[1 - ry::2, 1 - rx::2] = 50
+    bgr = convert_buffer(mosaic.tobytes(), w, h, fmt)
+    assert tuple(int(v) for v in bgr[4, 4]) == (50, 100, 200)
+    grey16 = convert_buffer(np.arange(12, dtype=np.uint16).tobytes(), 4, 3, "Mono16")
+    assert grey16.dtype == np.uint16 and grey16[2, 3] == 11
