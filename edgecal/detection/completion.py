@@ -19,11 +19,12 @@ from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates
 from edgecal.detection.subpixel import refine_corners
 
 
-def _predict(grid: dict[tuple[int, int], np.ndarray], u: int, v: int, reach: int = 2) -> np.ndarray | None:
-    """Predict the image position of label (u, v) from labelled corners within ``reach`` labels."""
+def _local_homography(grid: dict[tuple[int, int], np.ndarray], u_lo: int, u_hi: int, v_lo: int,
+                      v_hi: int) -> np.ndarray | None:
+    """Homography label -> image fitted to the corners with labels in [u_lo, u_hi] x [v_lo, v_hi]."""
     src, dst = [], []
     for (a, b), xy in grid.items():
-        if abs(a - u) <= reach and abs(b - v) <= reach:
+        if u_lo <= a <= u_hi and v_lo <= b <= v_hi:
             src.append((a, b))
             dst.append(xy)
     if len(src) < 4:
@@ -32,24 +33,21 @@ def _predict(grid: dict[tuple[int, int], np.ndarray], u: int, v: int, reach: int
     if len(np.unique(src_a[:, 0])) < 2 or len(np.unique(src_a[:, 1])) < 2:
         return None
     h, _ = cv2.findHomography(src_a, np.asarray(dst, np.float64), 0)
-    if h is None:
-        return None
-    p = h @ np.array([u, v, 1.0])
-    if abs(p[2]) < 1e-12:
-        return None
-    return p[:2] / p[2]
+    return h
 
 
-def _local_spacing(grid: dict[tuple[int, int], np.ndarray], u: int, v: int, xy: np.ndarray) -> float:
-    """Mean distance between label-adjacent corners near (u, v), in pixels."""
-    dists = []
-    for (a, b), p in grid.items():
-        if abs(a - u) <= 2 and abs(b - v) <= 2:
-            for da, db in ((1, 0), (0, 1)):
-                q = grid.get((a + da, b + db))
-                if q is not None:
-                    dists.append(float(np.hypot(*(q - p))))
-    return float(np.median(dists)) if dists else 10.0
+def _apply(h: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    p = np.c_[labels, np.ones(len(labels))] @ h.T
+    return p[:, :2] / p[:, 2:3]
+
+
+def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """Image positions of ``labels`` and the local square size there (the shorter label step), pixels."""
+    lab = np.asarray(labels, np.float64)
+    p = _apply(h, lab)
+    du = np.linalg.norm(_apply(h, lab + (1.0, 0.0)) - p, axis=1)
+    dv = np.linalg.norm(_apply(h, lab + (0.0, 1.0)) - p, axis=1)
+    return p, np.minimum(du, dv)
 
 
 def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray, spacing: np.ndarray,
@@ -78,33 +76,48 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         us = [u for u, _ in grid]
         vs = [v for _, v in grid]
         u0, u1, v0, v1 = min(us), max(us), min(vs), max(vs)
-        todo = [(u, v) for u in range(u0, u1 + 1) for v in range(v0, v1 + 1) if (u, v) not in grid]
-        side_lines = []
-        if u1 - u0 + 1 < max_dim:
-            side_lines += [[(u0 - 1, v) for v in range(v0, v1 + 1)], [(u1 + 1, v) for v in range(v0, v1 + 1)]]
-        if v1 - v0 + 1 < max_dim:
-            side_lines += [[(u, v0 - 1) for u in range(u0, u1 + 1)], [(u, v1 + 1) for u in range(u0, u1 + 1)]]
         added = False
-        for labels in [todo] + side_lines:
-            if not labels:
+        # Holes: each from a homography of its own neighbourhood (lens distortion is local).
+        holes = [(u, v) for u in range(u0, u1 + 1) for v in range(v0, v1 + 1) if (u, v) not in grid]
+        preds, keys, spac = [], [], []
+        for (u, v) in holes:
+            h = _local_homography(grid, u - 2, u + 2, v - 2, v + 2)
+            if h is not None:
+                p, sp = _predict(h, [(u, v)])
+                preds.append(p[0])
+                keys.append((u, v))
+                spac.append(sp[0])
+        # Sides: a whole new row or column from the three nearest ones.
+        sides = []
+        if u1 - u0 + 1 < max_dim:
+            sides += [([(u0 - 1, v) for v in range(v0, v1 + 1)], (u0, u0 + 2, v0, v1)),
+                      ([(u1 + 1, v) for v in range(v0, v1 + 1)], (u1 - 2, u1, v0, v1))]
+        if v1 - v0 + 1 < max_dim:
+            sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (u0, u1, v0, v0 + 2)),
+                      ([(u, v1 + 1) for u in range(u0, u1 + 1)], (u0, u1, v1 - 2, v1))]
+        groups = [(len(keys), None)]
+        for labels, box in sides:
+            h = _local_homography(grid, *box)
+            if h is None:
                 continue
-            preds, keys, spac = [], [], []
-            for (u, v) in labels:
-                p = _predict(grid, u, v)
-                if p is not None:
-                    preds.append(p)
-                    keys.append((u, v))
-                    spac.append(_local_spacing(grid, u, v, p))
-            if not preds:
-                continue
-            refined, good = _verify(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params)
+            p, sp = _predict(h, labels)
+            preds.extend(p)
+            keys.extend(labels)
+            spac.extend(sp)
+            groups.append((len(keys), labels))
+        if not keys:
+            break
+        refined, good = _verify(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params)
+        start = 0
+        for end, labels in groups:
+            sel = range(start, end)
             # A side line is taken only when most of it is confirmed (a board's margin confirms nothing).
-            if labels is not todo and good.sum() < max(2, 0.6 * len(labels)):
-                continue
-            for key, p, g in zip(keys, refined, good):
-                if g:
-                    grid[key] = p
-                    added = True
+            if labels is None or sum(good[i] for i in sel) >= max(2, 0.6 * len(labels)):
+                for i in sel:
+                    if good[i]:
+                        grid[keys[i]] = refined[i]
+                        added = True
+            start = end
         if not added:
             break
     return grid

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -43,20 +44,28 @@ def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, 
 
 def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.ndarray,
                 p: DetectorParams) -> np.ndarray:
-    """Indices of candidates accepted by the probe at r_e or, failing that, at a small radius."""
-    accepted = np.zeros(len(cands), dtype=bool)
-    for radius in (p.probe_radius_px, max(p.probe_radius_min_px, 0.5 * p.probe_radius_px)):
+    """Candidates accepted by the probe at r_e or, failing that, at a small radius, snapped to sub-pixel.
+
+    Min-eigenvalue maxima sit 1-3 px off an X-corner (the gradient vanishes at the saddle itself), and the
+    probe needs to sit on the corner, so survivors of the cheap ring test are snapped first.
+    """
+    radii = (float(p.probe_radius_px), max(p.probe_radius_min_px, 0.5 * p.probe_radius_px))
+    keep = np.zeros(len(cands), dtype=bool)
+    for radius in radii:
+        keep |= ring_prefilter(smooth, cands, np.full(len(cands), radius), p.min_contrast)
+    pts = cands[keep]
+    if len(pts) == 0:
+        return pts
+    pts = refine_corners(smooth, pts, np.full(len(pts), 9.0), max_move_px=3.5)
+    pts = pts[_dedupe(pts, np.arange(len(pts)), 0.75)]
+    accepted = np.zeros(len(pts), dtype=bool)
+    for radius in radii:
         todo = np.nonzero(~accepted)[0]
         if len(todo) == 0:
             break
-        radii = np.full(len(todo), float(radius))
-        keep = ring_prefilter(smooth, np.ascontiguousarray(cands[todo]), radii, p.min_contrast)
-        todo = todo[keep]
-        if len(todo) == 0:
-            continue
-        ok, _d, _m = _probe(smooth, gx, gy, cands[todo], radii[keep], p)
+        ok, _d, _m = _probe(smooth, gx, gy, pts[todo], np.full(len(todo), radius), p)
         accepted[todo[ok]] = True
-    return np.nonzero(accepted)[0]
+    return pts[accepted]
 
 
 def _nearest_spacing(pts: np.ndarray) -> np.ndarray:
@@ -69,15 +78,17 @@ def _nearest_spacing(pts: np.ndarray) -> np.ndarray:
 
 def _dedupe(pts: np.ndarray, order: np.ndarray, radius: float = 1.0) -> np.ndarray:
     """Indices of ``pts`` with no earlier (in ``order``) point within ``radius`` pixels."""
-    tree = cKDTree(pts)
-    taken = np.zeros(len(pts), dtype=bool)
-    keep = []
-    for i in order:
-        if taken[i]:
-            continue
-        keep.append(i)
-        taken[tree.query_ball_point(pts[i], radius)] = True
-    return np.asarray(keep, dtype=np.int64)
+    rank = np.empty(len(pts), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    drop = np.zeros(len(pts), dtype=bool)
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    if len(pairs):
+        # Of each close pair, the later one goes (greedy by rank, so chains resolve in order).
+        for i, j in pairs[np.argsort(np.minimum(rank[pairs[:, 0]], rank[pairs[:, 1]]))]:
+            if drop[i] or drop[j]:
+                continue
+            drop[j if rank[j] > rank[i] else i] = True
+    return np.asarray([i for i in order if not drop[i]], dtype=np.int64)
 
 
 def _grid_spacing(uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -91,6 +102,18 @@ def _grid_spacing(uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return out
 
 
+def _grid_span(grid: dict[tuple[int, int], np.ndarray]) -> tuple[int, int]:
+    uv = np.array(list(grid.keys()))
+    span = uv.max(axis=0) - uv.min(axis=0) + 1
+    return int(span[0]), int(span[1])
+
+
+def _is_full_board(grid: dict[tuple[int, int], np.ndarray], by_size: dict[frozenset, list[Board]]) -> bool:
+    """Whether the grid is a full rectangle of one of the target's board sizes (no completion needed)."""
+    span = _grid_span(grid)
+    return len(grid) == span[0] * span[1] and frozenset(span) in by_size
+
+
 def _boards_by_size(target: Target) -> dict[frozenset, list[Board]]:
     out: dict[frozenset, list[Board]] = {}
     for b in target.boards:
@@ -99,18 +122,41 @@ def _boards_by_size(target: Target) -> dict[frozenset, list[Board]]:
 
 
 def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> DetectionDebug:
-    """Detect the target's boards in ``image`` and return every intermediate result (see DetectionDebug)."""
+    """Detect the target's boards in ``image`` and return every intermediate result (see DetectionDebug).
+
+    Large images are searched at half resolution first (a quarter of the pixel work); when that finds every
+    board of the target, the corners are refined at full resolution and the full-resolution search, which
+    only the smallest squares need, is skipped.
+    """
     p = params or DEFAULT_PARAMS
     grey = as_grey(image)
+    if min(grey.shape) >= p.pyramid_min_size_px:
+        half = _detect_level(cv2.pyrDown(grey), target, p)
+        if len(half.detections) == len(target.boards):
+            return _to_full_resolution(half, grey)
+    return _detect_level(grey, target, p)
+
+
+def _to_full_resolution(half: DetectionDebug, grey: np.ndarray) -> DetectionDebug:
+    """Scale a half-resolution result up (pyrDown keeps even pixels: x_full = 2 x_half) and refine."""
+    smooth = cv2.GaussianBlur(grey.astype(np.float32), (5, 5), 0.8)
+    for det in half.detections:
+        xy = 2.0 * det.corners
+        det.corners = refine_corners(smooth, xy, _grid_spacing(det.ids, xy))
+    return DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
+                          half.detections, half.notes)
+
+
+def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> DetectionDebug:
+    """The whole pipeline on one image (one pyramid level)."""
     smooth, gx, gy = prepare_image(grey, smoothing_sigma(estimate_noise_sigma(grey)))
-    cands, _resp = min_eigen_candidates(smooth, p.candidate_block_size, p.candidate_quality, p.max_candidates)
+    cands, _resp = min_eigen_candidates(gx, gy, p.candidate_block_size, p.candidate_quality, p.max_candidates)
     empty = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
-    first = _first_pass(smooth, gx, gy, cands, p)
-    if len(first) < 4:
+    pts = _first_pass(smooth, gx, gy, cands, p)
+    if len(pts) < 4:
         return empty
 
-    # Sub-pixel, then the probe again with its radius adapted to the local square size.
-    pts = cands[first]
+    # Sub-pixel with a window from the local square size, then the probe again with its radius adapted.
     spacing = _nearest_spacing(pts)
     pts = refine_corners(smooth, pts, spacing)
     pts = pts[_dedupe(pts, np.arange(len(pts)))]
@@ -137,7 +183,8 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
         if len(members) < p.min_grid_corners:
             continue
         grid = {(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members}
-        grid = complete_grid(grid, smooth, gx, gy, max_dim, p)
+        if not _is_full_board(grid, by_size):
+            grid = complete_grid(grid, smooth, gx, gy, max_dim, p)
         grids.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.
     grids.sort(key=len, reverse=True)

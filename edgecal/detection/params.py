@@ -31,9 +31,11 @@ class DetectorParams:
     candidate_block_size: int = 3
     max_candidates: int = 6000
     min_grid_corners: int = 6
+    pyramid_min_size_px: int = 600
 
 
-_INT_FIELDS = {"probe_angles", "candidate_block_size", "max_candidates", "min_grid_corners"}
+_INT_FIELDS = {"probe_angles", "candidate_block_size", "max_candidates", "min_grid_corners",
+               "pyramid_min_size_px"}
 _FRACTION_FIELDS = {"sign_fraction", "cross_ratio_tolerance", "candidate_quality"}
 
 

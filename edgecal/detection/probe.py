@@ -283,7 +283,9 @@ def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_con
 
     Samples 24 points on a circle (at 0.5 and 1.0 x ``radii``), classifies each against the ring's mean with
     a hysteresis of a quarter of ``min_contrast``, and keeps points where either ring alternates exactly four
-    times and spans at least ``min_contrast``. Saves the full probe's cost on most non-corners.
+    times, spans at least ``min_contrast`` and is nearly point-symmetric (an X-corner looks the same turned
+    by 180 degrees, locally even under perspective; edges, L- and T-junctions do not). Saves the full
+    probe's cost on most non-corners.
     """
     m = pts.shape[0]
     keep = np.zeros(m, dtype=np.bool_)
@@ -316,6 +318,13 @@ def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_con
                     state = 1 if vals[k] > mean else -1
                     break
             if start < 0:
+                continue
+            spread = 0.0
+            asym = 0.0
+            for k in range(n):
+                spread += abs(vals[k] - mean)
+                asym += abs(vals[k] - vals[(k + n // 2) % n])
+            if asym > 0.6 * spread:
                 continue
             changes = 0
             for j in range(1, n + 1):

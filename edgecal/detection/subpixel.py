@@ -18,8 +18,10 @@ def subpixel_window(spacing: np.ndarray) -> np.ndarray:
     return np.clip(np.floor(0.35 * np.asarray(spacing)), 2, 12).astype(np.int64)
 
 
-def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    """Refined copies of ``pts`` (M, 2); points whose refinement runs away keep their start position."""
+def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
+                   max_move_px: float | None = None) -> np.ndarray:
+    """Refined copies of ``pts`` (M, 2); points that move further than ``max_move_px`` (default: half the
+    window) keep their start position: the refinement ran away to another structure."""
     out = np.array(pts, dtype=np.float32).reshape(-1, 1, 2)
     if len(out) == 0:
         return out.reshape(-1, 2).astype(np.float64)
@@ -36,6 +38,6 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray) -> 
         block = out[sel].copy()
         cv2.cornerSubPix(smooth, block, (int(hw), int(hw)), (-1, -1), _CRITERIA)
         moved = np.linalg.norm(block[:, 0] - out[sel, 0], axis=1)
-        good = moved < max(1.5, 0.5 * hw)
+        good = moved < (max_move_px if max_move_px is not None else max(1.5, 0.5 * hw))
         out[sel[good]] = block[good]
     return out.reshape(-1, 2).astype(np.float64)
