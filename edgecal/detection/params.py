@@ -34,6 +34,8 @@ class DetectorParams:
     pyramid_min_size_px: int = 600
 
 
+DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"
+
 _INT_FIELDS = {"probe_angles", "candidate_block_size", "max_candidates", "min_grid_corners",
                "pyramid_min_size_px"}
 _FRACTION_FIELDS = {"sign_fraction", "cross_ratio_tolerance", "candidate_quality"}
