@@ -1,0 +1,175 @@
+"""Luxonis OAK stereo cameras through the DepthAI v3 API (``depthai:`` or ``depthai:MXID``).
+
+A StereoSource: the left (CAM_B) and right (CAM_C) mono sensors, grouped on the device by a Sync node
+so that each pair was exposed together; ``stamp_ns`` is the device capture time translated by DepthAI
+to the host's steady clock (CLOCK_MONOTONIC). The device's factory calibration is read with
+:func:`factory_calibration`, an initial guess for edgecal's own.
+
+``depthai`` is imported only here, when such a source is opened. Device search is bounded by
+DepthAI's own DEPTHAI_SEARCH_TIMEOUT (ms); DEPTHAI_PROTOCOL=usb keeps it off the network.
+Settings: width, height (default 640x400), fps (default 30), exposure_us + iso (manual exposure),
+max_skew_ms (the Sync node's threshold), timeout_s.
+"""
+
+from __future__ import annotations
+
+import datetime
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgecal.drivers.base import Frame, StereoFrame, StereoSource
+from edgecal.drivers.spec import SourceSpec
+from edgecal.errors import DeviceError
+
+DEFAULT_SIZE = (640, 400)
+DEFAULT_FPS = 30.0
+
+
+def load_depthai() -> Any:
+    """The depthai module; DeviceError saying what to install when it is missing."""
+    try:
+        import depthai
+    except ImportError as exc:
+        raise DeviceError(f"the DepthAI driver is unavailable ({exc}): pip install 'depthai>=3'") from None
+    return depthai
+
+
+def _ns(td: datetime.timedelta) -> int:
+    """A timedelta as integer nanoseconds without going through a float."""
+    return (td.days * 86_400 + td.seconds) * 1_000_000_000 + td.microseconds * 1000
+
+
+@dataclass
+class FactoryCalibration:
+    """The OAK's stored stereo calibration at ``image_size`` ([width, height]); R, T map left to right.
+
+    ``X_right = R X_left + T_m`` (OpenCV's stereoCalibrate convention, metres) as in docs/conventions.md.
+    """
+
+    image_size: tuple[int, int]
+    camera_matrix_left: np.ndarray
+    dist_left: np.ndarray
+    camera_matrix_right: np.ndarray
+    dist_right: np.ndarray
+    R: np.ndarray
+    T_m: np.ndarray
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain lists, for YAML/JSON."""
+        return {"image_size": list(self.image_size),
+                "camera_matrix_left": self.camera_matrix_left.tolist(), "dist_left": self.dist_left.tolist(),
+                "camera_matrix_right": self.camera_matrix_right.tolist(), "dist_right": self.dist_right.tolist(),
+                "R": self.R.tolist(), "T_m": self.T_m.tolist()}
+
+
+def factory_calibration(calib: Any, width: int, height: int) -> FactoryCalibration:
+    """Convert a depthai.CalibrationHandler to edgecal's stereo convention at ``width`` x ``height``.
+
+    DepthAI rescales the intrinsics to the requested size; its extrinsics are in centimetres and map
+    points from the source camera (left, CAM_B) into the destination camera (right, CAM_C).
+    """
+    dai = load_depthai()
+    left, right = dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C
+    try:
+        k_l = np.array(calib.getCameraIntrinsics(left, width, height), dtype=np.float64)
+        k_r = np.array(calib.getCameraIntrinsics(right, width, height), dtype=np.float64)
+        d_l = np.array(calib.getDistortionCoefficients(left), dtype=np.float64)
+        d_r = np.array(calib.getDistortionCoefficients(right), dtype=np.float64)
+        m = np.array(calib.getCameraExtrinsics(left, right), dtype=np.float64)
+    except RuntimeError as exc:
+        raise DeviceError(f"the device's factory calibration is incomplete ({exc})") from None
+    # DepthAI stores 14 coefficients (k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty); the first five are OpenCV's.
+    return FactoryCalibration((width, height), k_l, d_l[:5], k_r, d_r[:5], m[:3, :3], m[:3, 3] / 100.0)
+
+
+class OakStereoSource(StereoSource):
+    """An OAK device's left/right mono pair, synchronised on the device."""
+
+    def __init__(self, spec: SourceSpec) -> None:
+        self.spec = spec
+        self.uri = spec.uri
+        self.settings = spec.settings
+        self._device: Any = None
+        self._pipeline: Any = None
+        self._queue: Any = None
+        self.device_info: dict[str, Any] = {}
+        self.size = (spec.settings.width or DEFAULT_SIZE[0], spec.settings.height or DEFAULT_SIZE[1])
+
+    def describe(self) -> dict:
+        """URI, device identity and settings."""
+        return {"uri": self.uri, "driver": "depthai", "device": self.device_info, "width": self.size[0],
+                "height": self.size[1], "settings": self.settings.as_dict()}
+
+    def open(self) -> None:
+        """Find the device (bounded by DEPTHAI_SEARCH_TIMEOUT), build the pipeline and start it."""
+        if self._device is not None:
+            return
+        dai = load_depthai()
+        mxid = self.spec.target
+        try:
+            self._device = dai.Device(dai.DeviceInfo(mxid)) if mxid else dai.Device()
+        except RuntimeError as exc:
+            which = f"with id {mxid}" if mxid else "at all"
+            raise DeviceError(f"{self.uri}: no DepthAI device found {which} ({exc}); check the USB cable and "
+                              "power, and that the udev rules let this user open it") from None
+        try:
+            self.device_info = {"mxid": self._device.getDeviceId(), "name": self._device.getDeviceName()}
+            self._build(dai)
+        except BaseException:
+            self.close()
+            raise
+
+    def _build(self, dai: Any) -> None:
+        s = self.settings
+        fps = s.fps or DEFAULT_FPS
+        p = dai.Pipeline(self._device)
+        sync = p.create(dai.node.Sync)
+        sync.setSyncThreshold(datetime.timedelta(microseconds=int(s.max_skew_ms * 1000)))
+        for name, socket in (("left", dai.CameraBoardSocket.CAM_B), ("right", dai.CameraBoardSocket.CAM_C)):
+            cam = p.create(dai.node.Camera).build(socket)
+            if s.exposure_us is not None:
+                cam.initialControl.setManualExposure(int(s.exposure_us), int(s.iso or 400))
+            out = cam.requestOutput(self.size, type=dai.ImgFrame.Type.GRAY8, fps=fps)
+            out.link(sync.inputs[name])
+        self._queue = sync.out.createOutputQueue(maxSize=4, blocking=False)
+        p.start()
+        self._pipeline = p
+
+    def calibration(self) -> FactoryCalibration:
+        """The device's factory stereo calibration at the streamed size."""
+        if self._device is None:
+            raise DeviceError(f"{self.uri}: not open")
+        return factory_calibration(self._device.readCalibration(), *self.size)
+
+    def _frame(self, img: Any, recv: int, side: str) -> Frame:
+        exposure = img.getExposureTime()
+        return Frame(img.getFrame(), _ns(img.getTimestamp()), recv, int(img.getSequenceNum()),
+                     f"{self.spec.camera_id}#{side}", _ns(exposure) / 1000.0 if exposure else None, None)
+
+    def read(self, timeout_s: float | None = None) -> StereoFrame:
+        """The next synchronised pair; DeviceError after the timeout or when the device is lost."""
+        if self._queue is None:
+            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+        timeout = self.settings.timeout_s if timeout_s is None else timeout_s
+        try:
+            group = self._queue.get(datetime.timedelta(seconds=timeout))
+        except RuntimeError as exc:
+            raise DeviceError(f"{self.uri}: the device stopped ({exc}); unplugged or out of power?") from None
+        if group is None:
+            raise DeviceError(f"{self.uri}: no synchronised pair within {timeout:g} s")
+        recv = time.monotonic_ns()
+        return StereoFrame(self._frame(group["left"], recv, "left"), self._frame(group["right"], recv, "right"))
+
+    def close(self) -> None:
+        """Stop the pipeline and close the device (safe after errors)."""
+        pipeline, device = self._pipeline, self._device
+        self._pipeline = self._device = self._queue = None
+        try:
+            if pipeline is not None:
+                pipeline.stop()
+        finally:
+            if device is not None:
+                device.close()
