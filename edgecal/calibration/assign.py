@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgecal.calibration.checks import DegenerateInput
-from edgecal.calibration.dlt import calibrate_dlt
+from edgecal.calibration.dlt import calibrate_dlt, dlt_projection_matrix
 from edgecal.calibration.types import CornerSet
 from edgecal.detection.types import Detection
 from edgecal.targets import Board, Target
@@ -93,6 +93,18 @@ def _corner_set(dets: list[Detection], target: Target, choice: tuple[tuple[Board
     return CornerSet(np.concatenate(objs), np.concatenate(imgs), tuple(keys))
 
 
+def _dlt_residual(obj: np.ndarray, img: np.ndarray) -> float:
+    """RMS reprojection error of the DLT camera of these matches (inf when degenerate or behind)."""
+    try:
+        p = dlt_projection_matrix(obj, img)
+    except DegenerateInput:
+        return float("inf")
+    h = np.c_[obj, np.ones(len(obj))] @ p.T
+    if h[:, 2].min() <= 0:
+        return float("inf")  # a wrong assignment can put corners behind the camera
+    return float(np.sqrt(np.mean(np.sum((h[:, :2] / h[:, 2:3] - img) ** 2, axis=1))))
+
+
 def rank_assignments(detections: list[Detection], target: Target, keep: int = 8) -> list[Assignment]:
     """Consistent assignments of ``detections`` to ``target``, best (smallest DLT residual) first.
 
@@ -113,13 +125,28 @@ def rank_assignments(detections: list[Detection], target: Target, keep: int = 8)
         log.warning("%d possible assignments of %d grids: trying only the detector's board names",
                     n_combos, len(dets))
         combos = itertools.product(*[[c for c in p if c[0].name == d.board] for p, d in zip(per_det, dets)])
-    scored: list[Assignment] = []
+    # Object points of every (detection, board, rotation) once; each combination only stacks them.
+    cache: dict[tuple[int, str, int], np.ndarray] = {}
+    for i, (d, cands) in enumerate(zip(dets, per_det)):
+        src = target.board(d.board)
+        for b, deg in cands:
+            ids = rotate_ids(np.asarray(d.ids, dtype=np.int64).reshape(-1, 2), src.cols, src.rows, deg)
+            cache[(i, b.name, deg)] = b.target_points_mm(ids)
+    img = np.concatenate([np.asarray(d.corners, dtype=np.float64).reshape(-1, 2) for d in dets])
+    scored_choices: list[tuple[float, tuple[tuple[Board, int], ...]]] = []
     for choice in combos:
         names = [b.name for b, _ in choice]
         if len(set(names)) != len(names):
             continue
+        obj = np.concatenate([cache[(i, b.name, deg)] for i, (b, deg) in enumerate(choice)])
+        rms = _dlt_residual(obj, img)
+        if np.isfinite(rms):
+            scored_choices.append((rms, choice))
+    scored_choices.sort(key=lambda sc: sc[0])
+    scored: list[Assignment] = []
+    for _, choice in scored_choices[:keep]:
         cs = _corner_set(dets, target, choice)
-        try:
+        try:  # the full DLT (distortion-free camera, points in front) confirms the quick score
             rms = calibrate_dlt(cs.object_mm, cs.image_px).rms_px
         except DegenerateInput:
             continue

@@ -55,7 +55,7 @@ def dlt_projection_matrix(object_pts: np.ndarray, image_px: np.ndarray) -> np.nd
     a[0::2, 8:12] = -uh[:, :1] * xh
     a[1::2, 4:8] = xh
     a[1::2, 8:12] = -uh[:, 1:2] * xh
-    _, s, vt = np.linalg.svd(a)
+    _, s, vt = np.linalg.svd(a, full_matrices=False)
     if s[-2] < 1e-9 * s[0]:
         raise DegenerateInput("the corners do not determine a camera (their 3-D layout is degenerate)")
     p = np.linalg.inv(t2) @ vt[-1].reshape(3, 4) @ t3

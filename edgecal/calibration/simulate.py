@@ -79,8 +79,7 @@ def stereo_truth(distance_mm: float = 300.0, baseline_mm: float = 60.0, size_mm:
     direction = np.array([1.0, -1.3, 1.1])
     direction /= np.linalg.norm(direction)
     eye = c + distance_mm * direction
-    side = np.cross(direction, [0.0, 0.0, 1.0])
-    side /= np.linalg.norm(side)
+    side = look_at(eye, c).rotation[0]  # the rig's image-right direction: the right camera sits there
     left_pose = look_at(eye - side * baseline_mm / 2, c)
     right_pose = look_at(eye + side * baseline_mm / 2, c)
     r = right_pose.rotation @ left_pose.rotation.T
