@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from edgecal.detection.candidates import (estimate_noise_sigma, min_eigen_candidates, prepare_image,
-                                          smoothing_sigma)
+                                          smoothing_sigma, snap_to_saddle)
 from edgecal.detection.completion import complete_grid
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids
@@ -44,20 +44,20 @@ def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, 
 
 def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.ndarray,
                 p: DetectorParams) -> np.ndarray:
-    """Candidates accepted by the probe at r_e or, failing that, at a small radius, snapped to sub-pixel.
+    """Candidates accepted by the probe at r_e or, failing that, at a small radius.
 
     Min-eigenvalue maxima sit 1-3 px off an X-corner (the gradient vanishes at the saddle itself), and the
-    probe needs to sit on the corner, so survivors of the cheap ring test are snapped first.
+    probe needs to sit on the corner, so every candidate is snapped to its saddle first.
     """
     radii = (float(p.probe_radius_px), max(p.probe_radius_min_px, 0.5 * p.probe_radius_px))
-    keep = np.zeros(len(cands), dtype=bool)
+    pts = snap_to_saddle(smooth, cands, 3)
+    pts = pts[_dedupe(pts, np.arange(len(pts)), 0.75)]
+    keep = np.zeros(len(pts), dtype=bool)
     for radius in radii:
-        keep |= ring_prefilter(smooth, cands, np.full(len(cands), radius), p.min_contrast)
-    pts = cands[keep]
+        keep |= ring_prefilter(smooth, pts, np.full(len(pts), radius), p.min_contrast)
+    pts = pts[keep]
     if len(pts) == 0:
         return pts
-    pts = refine_corners(smooth, pts, np.full(len(pts), 9.0), max_move_px=3.5)
-    pts = pts[_dedupe(pts, np.arange(len(pts)), 0.75)]
     accepted = np.zeros(len(pts), dtype=bool)
     for radius in radii:
         todo = np.nonzero(~accepted)[0]
@@ -92,13 +92,13 @@ def _dedupe(pts: np.ndarray, order: np.ndarray, radius: float = 1.0) -> np.ndarr
 
 
 def _grid_spacing(uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Per corner, the mean distance to its label neighbours."""
+    """Per corner, the distance to its nearest label neighbour (the foreshortened square size)."""
     index = {(int(u), int(v)): i for i, (u, v) in enumerate(uv)}
     out = np.zeros(len(uv))
     for i, (u, v) in enumerate(uv):
         d = [np.hypot(*(xy[j] - xy[i])) for j in (index.get((u + a, v + b)) for a, b in
                                                   ((1, 0), (-1, 0), (0, 1), (0, -1))) if j is not None]
-        out[i] = np.mean(d) if d else 10.0
+        out[i] = np.min(d) if d else 10.0
     return out
 
 

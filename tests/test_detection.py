@@ -1,0 +1,272 @@
+"""The detector, step by step and end to end, on images edgecal renders itself (exact ground truth)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import edgecal
+from edgecal.detection.candidates import prepare_image
+from edgecal.detection.grouping import CROSS_RATIO_EQUAL_STEPS, cross_ratio, group_grids
+from edgecal.detection.params import DetectorParams, params_from_mapping
+from edgecal.detection.probe import (EDGE_ACROSS_RAY, EDGE_MAGNITUDE, M_FIRST_SIGN, probe_candidates,
+                                     probe_profile_reference, probe_profiles)
+from edgecal.errors import ConfigError, InputError
+from edgecal.evaluate import FoundGrid, corner_rms, ground_truth_from_mapping, score_image
+from edgecal.synth.photometric import CLEAN
+from edgecal.synth.scenes import multi_view, negative_view, planar_view
+from edgecal.targets import Board, Target, planar_target
+
+
+def _score(view, detections):
+    truth = ground_truth_from_mapping(view.truth, "rendered")
+    return score_image([FoundGrid(d.corners, d.ids, d.grid) for d in detections], truth)
+
+
+def _corner_image(angle_deg: float, size: int = 41, blur: float = 1.0) -> np.ndarray:
+    """An ideal X-corner at the image centre whose border lines run at angle and angle + 90 degrees."""
+    import cv2
+
+    ss = 8
+    n = size * ss
+    c = (size - 1) / 2.0
+    ys, xs = (np.mgrid[0:n, 0:n] + 0.5) / ss - 0.5 - c
+    a = math.radians(angle_deg)
+    u = xs * math.cos(a) + ys * math.sin(a)
+    v = -xs * math.sin(a) + ys * math.cos(a)
+    hi = np.where((u > 0) == (v > 0), 200.0, 40.0)
+    img = cv2.resize(hi, (size, size), interpolation=cv2.INTER_AREA)
+    return cv2.GaussianBlur(img, (0, 0), blur).astype(np.uint8)
+
+
+# --- Eq. (1): the probe kernel against its plain-Python reference -------------------------------------
+
+@pytest.mark.parametrize("mode", [EDGE_MAGNITUDE, EDGE_ACROSS_RAY])
+def test_probe_profile_matches_reference(mode: int) -> None:
+    view = planar_view(3, size=(320, 240), cols=5, rows=4, square_px=25.0)
+    smooth, gx, gy = prepare_image(view.image)
+    pts = np.vstack([view.corners()[:3], [[5.0, 5.0], [318.5, 100.2]]])  # incl. rays leaving the image
+    radii = np.array([10.0, 7.5, 12.0, 10.0, 10.0])
+    kernel = probe_profiles(gx, gy, pts, radii, 48, 1.5, mode)
+    for i, (x, y) in enumerate(pts):
+        ref = probe_profile_reference(gx, gy, x, y, radii[i], 48, 1.5, mode)
+        np.testing.assert_allclose(kernel[i], ref, rtol=1e-4, atol=1e-4)
+
+
+# --- Eq. (2)-(5): directions, 180-degree test and sign alternation -----------------------------------
+
+@pytest.mark.parametrize("angle", [0.0, 17.0, 33.0, 45.0, 71.0])
+def test_probe_finds_the_four_border_directions(angle: float) -> None:
+    img = _corner_image(angle)
+    smooth, gx, gy = prepare_image(img)
+    p = DetectorParams()
+    ok, dirs, meas = probe_candidates(gx, gy, smooth, np.array([[20.0, 20.0]]), np.array([10.0]), 64, 1.5,
+                                      EDGE_ACROSS_RAY, math.radians(30), 0.7, 12.0, 1.6)
+    assert ok[0]
+    expected = np.radians(angle + np.arange(4) * 90.0)
+    # each true direction has a found one within 1.5 degrees (compared on the circle)
+    diff = np.abs((dirs[0][None, :] - expected[:, None] + math.pi) % (2 * math.pi) - math.pi)
+    assert diff.min(axis=1).max() < math.radians(1.5), np.degrees(diff.min(axis=1))
+    assert meas[0, M_FIRST_SIGN] != 0.0
+    assert p.sign_fraction == 0.70
+
+
+def test_probe_rejects_edges_l_corners_and_flat_areas() -> None:
+    import cv2
+
+    img = np.full((41, 41), 40, np.uint8)
+    img[:, 20:] = 200  # a straight edge through the centre
+    l_corner = np.full((41, 41), 40, np.uint8)
+    l_corner[20:, 20:] = 200  # one bright quadrant: an L-corner
+    flat = np.full((41, 41), 120, np.uint8)
+    t_junction = np.full((41, 41), 40, np.uint8)
+    t_junction[20:, :] = 200
+    t_junction[20:, 20:] = 120
+    for name, im in (("edge", img), ("L", l_corner), ("flat", flat), ("T", t_junction)):
+        im = cv2.GaussianBlur(im, (0, 0), 1.0)
+        smooth, gx, gy = prepare_image(im)
+        ok, _d, _m = probe_candidates(gx, gy, smooth, np.array([[20.0, 20.0]]), np.array([10.0]), 64, 1.5,
+                                      EDGE_ACROSS_RAY, math.radians(30), 0.7, 12.0, 1.6)
+        assert not ok[0], name
+
+
+# --- Eq. (6)-(8): grouping and the cross-ratio ---------------------------------------------------------
+
+def test_cross_ratio_is_projective_invariant() -> None:
+    assert cross_ratio(0, 1, 2, 3) == pytest.approx(CROSS_RATIO_EQUAL_STEPS)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        a, b, c, d = rng.normal(size=4)
+        if abs(c * 0 + d) < 0.1 or abs(c * 3 + d) < 0.1 or (c * 0 + d) * (c * 3 + d) < 0:
+            continue
+        x = [(a * t + b) / (c * t + d) for t in (0.0, 1.0, 2.0, 3.0)]
+        assert cross_ratio(*x) == pytest.approx(CROSS_RATIO_EQUAL_STEPS, rel=1e-9)
+    assert abs(cross_ratio(0, 1, 3, 4) - CROSS_RATIO_EQUAL_STEPS) / CROSS_RATIO_EQUAL_STEPS > 0.05
+
+
+def _grid_points(cols: int, rows: int, step: float = 20.0, angle: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    ca, sa = math.cos(angle), math.sin(angle)
+    pts, dirs = [], []
+    for r in range(rows):
+        for c in range(cols):
+            pts.append((50 + step * (c * ca - r * sa), 50 + step * (c * sa + r * ca)))
+            dirs.append(np.sort(np.mod(angle + np.arange(4) * math.pi / 2, 2 * math.pi)))
+    return np.array(pts), np.array(dirs)
+
+
+def test_grouping_labels_a_whole_grid_and_drops_an_intruder_on_a_line() -> None:
+    pts, dirs = _grid_points(6, 4)
+    # A false point on row 0 between columns 2 and 3 (on the line, wrong spacing): Eq. (8) must reject it.
+    intruder = pts[2] + 0.45 * (pts[3] - pts[2])
+    pts2 = np.vstack([pts, intruder])
+    dirs2 = np.vstack([dirs, dirs[0]])
+    spacing = np.full(len(pts2), 20.0)
+    spacing[-1] = 9.0
+    score = np.ones(len(pts2))
+    score[-1] = 2.0  # the intruder seeds the walk: the worst case
+    labels, _ = group_grids(pts2, dirs2, spacing, score, 10.0, 40.0, 0.05)
+    main = labels[:-1, 0]
+    assert len(set(main)) == 1 and main[0] >= 0
+    uv = labels[:-1, 1:] - labels[:-1, 1:].min(axis=0)
+    assert sorted(map(tuple, uv)) == sorted((c, r) for r in range(4) for c in range(6)) or \
+        sorted(map(tuple, uv)) == sorted((r, c) for r in range(4) for c in range(6))
+    assert labels[-1, 0] != main[0]
+
+
+# --- End to end on rendered views ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("square_px,cols,rows,size,seed", [
+    (8.0, 9, 6, (640, 480), 1),
+    (20.0, 9, 6, (640, 480), 2),
+    (60.0, 9, 6, (1280, 800), 3),
+    (150.0, 4, 3, (1280, 800), 4),
+])
+def test_detects_boards_from_8_to_150_px_squares(square_px: float, cols: int, rows: int, size, seed: int) -> None:
+    view = planar_view(seed, size=size, cols=cols, rows=rows, square_px=square_px)
+    dets = edgecal.detect(view.image, planar_target(cols, rows))
+    score = _score(view, dets)
+    assert score.n_found == 1 and score.false_boards == 0
+    # cols + rows is odd: the colour fixes the numbering, so ids equal the truth exactly.
+    if (cols + rows) % 2 == 1:
+        assert score.matches[0].symmetry == "identity"
+    assert corner_rms(score.found_errors()) < 0.15
+
+
+def test_corner_rms_on_clean_renders_is_below_005_px() -> None:
+    errors = []
+    for seed in range(3):
+        view = planar_view(seed, size=(640, 480), square_px=(30.0, 45.0), photometric=CLEAN,
+                           background="uniform", tilt_max_deg=35.0)
+        dets = edgecal.detect(view.image, planar_target(9, 6))
+        score = _score(view, dets)
+        assert score.n_found == 1
+        errors.append(score.found_errors())
+    assert corner_rms(np.concatenate(errors)) <= 0.05
+
+
+def test_no_board_on_negatives_is_a_normal_empty_result() -> None:
+    for seed in range(3):
+        view = negative_view(seed)
+        assert edgecal.detect(view.image, planar_target(9, 6)) == []
+        assert edgecal.detect(view.image, planar_target(3, 3)) == []
+
+
+def test_several_boards_of_different_sizes_in_one_image() -> None:
+    view = multi_view(11, size=(1280, 800), n_boards=3, square_px=(18.0, 30.0))
+    boards = [Board(b["name"], b["cols"], b["rows"], b["square_mm"]) for b in view.truth["target"]["boards"]]
+    dets = edgecal.detect(view.image, Target("multi", tuple(boards)))
+    score = _score(view, dets)
+    assert score.n_found == len(boards) and score.false_boards == 0
+    assert {d.board for d in dets} == {b.name for b in boards}
+
+
+def test_a_board_size_mistake_is_explained() -> None:
+    view = planar_view(5, size=(640, 480), square_px=30.0)
+    debug = edgecal.detect_debug(view.image, planar_target(10, 7))
+    assert debug.detections == []
+    assert any("found a 9x6 grid; the target says 10x7" in n for n in debug.notes), debug.notes
+
+
+def test_colour_input_and_debug_output() -> None:
+    import cv2
+
+    view = planar_view(6, size=(640, 480), square_px=30.0)
+    bgr = cv2.cvtColor(view.image, cv2.COLOR_GRAY2BGR)
+    debug = edgecal.detect_debug(bgr, planar_target(9, 6))
+    assert len(debug.detections) == 1
+    det = debug.detections[0]
+    assert det.corners.shape == (54, 2) and det.ids.shape == (54, 2) and det.quality.shape == (54,)
+    assert np.all((det.quality >= 0) & (det.quality <= 1))
+    assert len(debug.accepted) >= 54 and debug.directions.shape == (len(debug.accepted), 4)
+
+
+# --- Bad input -----------------------------------------------------------------------------------------
+
+def test_bad_arrays_are_input_errors() -> None:
+    target = planar_target(9, 6)
+    with pytest.raises(InputError, match="dtype float64"):
+        edgecal.detect(np.zeros((10, 10)), target)
+    with pytest.raises(InputError, match="empty"):
+        edgecal.detect(np.zeros((0, 0), np.uint8), target)
+    with pytest.raises(InputError, match="shape"):
+        edgecal.detect(np.zeros((4, 4, 2), np.uint8), target)
+    assert edgecal.detect(np.zeros((3, 3), np.uint8), target) == []
+
+
+def test_params_file_is_validated_by_field() -> None:
+    with pytest.raises(ConfigError, match="sign_fraction"):
+        params_from_mapping({"sign_fraction": 1.5}, "x.yaml")
+    with pytest.raises(ConfigError, match="probe_radius_pxx"):
+        params_from_mapping({"probe_radius_pxx": 3}, "x.yaml")
+    assert params_from_mapping({"probe_radius_px": 12}, "x.yaml").probe_radius_px == 12.0
+
+
+def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "edgecal", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_cli_detect_prints_json_lines_and_draws(tmp_path) -> None:
+    import cv2
+
+    view = planar_view(7, size=(640, 480), square_px=30.0)
+    img = tmp_path / "board.png"
+    cv2.imwrite(str(img), view.image)
+    neg = tmp_path / "empty.png"
+    cv2.imwrite(str(neg), negative_view(1).image)
+    res = _cli("detect", "--board", "9x6", str(img), str(neg), "--draw", str(tmp_path / "draw"))
+    assert res.returncode == 0, res.stderr
+    lines = [json.loads(x) for x in res.stdout.splitlines()]
+    assert [len(x["boards"]) for x in lines] == [1, 0]
+    assert lines[0]["size"] == [640, 480] and len(lines[0]["boards"][0]["corners"]) == 54
+    assert (tmp_path / "draw" / "board_detect.png").is_file()
+    # a second run refuses to overwrite the overlays
+    again = _cli("detect", "--board", "9x6", str(img), "--draw", str(tmp_path / "draw"))
+    assert again.returncode == 2 and "already exists" in again.stderr and "Traceback" not in again.stderr
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["detect", "--board", "9x6", "missing.png"], "missing.png: image file not found"),
+    (["detect", "--board", "nine", "x.png"], "--board 'nine'"),
+    (["detect", "--target", "nope.yaml", "x.png"], "nope.yaml: config file not found"),
+])
+def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, args, needle) -> None:
+    res = _cli(*args, cwd=tmp_path)
+    assert res.returncode == 2
+    assert needle in res.stderr and "Traceback" not in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+
+
+def test_cli_unreadable_image_and_bad_target_field(tmp_path) -> None:
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"not an image")
+    res = _cli("detect", "--board", "9x6", str(bad))
+    assert res.returncode == 2 and "not a readable image" in res.stderr
+    target = tmp_path / "t.yaml"
+    target.write_text("name: t\nboards:\n  - name: a\n    inner_corners: [9, 6]\n    square_mm: -3\n")
+    res = _cli("detect", "--target", str(target), str(bad))
+    assert res.returncode == 2 and "boards[0].square_mm" in res.stderr and "Traceback" not in res.stderr
