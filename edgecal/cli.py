@@ -19,6 +19,7 @@ from edgecal.errors import EdgecalError
 COMMAND_MODULES = (
     "edgecal.commands.detect",
     "edgecal.commands.calibrate",
+    "edgecal.commands.render",
 )
 
 

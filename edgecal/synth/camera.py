@@ -123,12 +123,12 @@ def _ray_grid_cached(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
     hit = _RAY_CACHE.get(key)
     if hit is None:
         w, h = cam.size
-        gx = np.arange(w + 1, dtype=np.float64) - 0.5
-        gy = np.arange(h + 1, dtype=np.float64) - 0.5
-        px = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 2)
-        xyd = cam.pixels_to_distorted(px)
-        x, y = undistort_normalized(np.ascontiguousarray(xyd[:, 0]), np.ascontiguousarray(xyd[:, 1]), cam.dist)
-        hit = (x.reshape(h + 1, w + 1), y.reshape(h + 1, w + 1))
+        K, d = cam.K, cam.dist
+        out_x = np.empty((h + 1, w + 1))
+        out_y = np.empty((h + 1, w + 1))
+        _undistort_grid(float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]),
+                        float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]), out_x, out_y)
+        hit = (out_x, out_y)
         if len(_RAY_CACHE) > 8:
             _RAY_CACHE.clear()
         _RAY_CACHE[key] = hit
@@ -203,6 +203,64 @@ def _undistort_kernel(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float, p1: 
             out_y[i] = np.nan
             px = np.nan
             py = np.nan
+
+
+@njit(cache=True, nogil=True)
+def _newton_undistort(xd: float, yd: float, x: float, y: float, k1: float, k2: float, p1: float, p2: float,
+                      k3: float) -> tuple[float, float, bool]:
+    """Solve distort(x, y) = (xd, yd) by Newton's method from the guess (x, y)."""
+    for _ in range(40):
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+        fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+        if abs(fx) + abs(fy) < 1e-14:
+            return x, y, True
+        dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
+        a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
+        b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y  # the Jacobian is symmetric
+        d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
+        det = a * d - b * b
+        if det <= 1e-9:
+            # The distortion folds over here: no unique inverse.
+            return x, y, False
+        x -= (d * fx - b * fy) / det
+        y -= (a * fy - b * fx) / det
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
+    fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
+    return x, y, abs(fx) + abs(fy) < 1e-12
+
+
+@njit(cache=True, nogil=True)
+def _undistort_grid(fx: float, skew: float, cx: float, fy: float, cy: float, k1: float, k2: float, p1: float,
+                    p2: float, k3: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
+    """Rays through the pixel-corner grid: out[i, j] for pixel point (j - 0.5, i - 0.5)."""
+    gh, gw = out_x.shape
+    for i in range(gh):
+        yd = (i - 0.5 - cy) / fy
+        x = np.nan
+        y = np.nan
+        for j in range(gw):
+            xd = (j - 0.5 - cx - skew * yd) / fx
+            # Warm start from the left neighbour (or the row above): two Newton steps usually suffice.
+            if x != x:
+                if i > 0 and out_x[i - 1, j] == out_x[i - 1, j]:
+                    x = out_x[i - 1, j]
+                    y = out_y[i - 1, j]
+                else:
+                    x = xd
+                    y = yd
+            x, y, ok = _newton_undistort(xd, yd, x, y, k1, k2, p1, p2, k3)
+            if ok:
+                out_x[i, j] = x
+                out_y[i, j] = y
+            else:
+                out_x[i, j] = np.nan
+                out_y[i, j] = np.nan
+                x = np.nan
+                y = np.nan
 
 
 def undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

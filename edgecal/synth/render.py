@@ -28,7 +28,8 @@ _O, _EX, _EY, _N = 0, 3, 6, 9
 _UMIN, _VMIN, _UMAX, _VMAX = 12, 13, 14, 15
 _SQUARE, _COLS, _ROWS = 16, 17, 18
 _BLACK, _WHITE, _BACK, _FRONT = 19, 20, 21, 22
-_NCOL = 23
+_BBOX = 23  # 23..26: bounding box of the panel's image in undistorted normalised coordinates
+_NCOL = 27
 
 
 @dataclass(frozen=True)
@@ -83,7 +84,7 @@ def panels_from_target(target: Target, R_world_target: np.ndarray = np.eye(3),
 
 
 def pack_panels(panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray) -> np.ndarray:
-    """The (P, 23) float64 array of panels in the camera frame that the kernels read."""
+    """The (P, 27) float64 array of panels in the camera frame that the kernels read."""
     R = np.asarray(R_cam_world, dtype=np.float64)
     t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
     arr = np.zeros((len(panels), _NCOL))
@@ -106,17 +107,29 @@ def pack_panels(panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np
         arr[i, _BACK] = p.back_albedo
         # The camera (origin) sees the printed side when it lies on the -normal side of the plane.
         arr[i, _FRONT] = 1.0 if float(n @ o) > 0.0 else 0.0
+        # A panel in front of the camera projects to a convex quadrilateral: its bounding box rejects most
+        # rays with four comparisons. A panel reaching behind the camera gets no box.
+        u0, v0, u1, v1 = p.extent_mm
+        corners = np.array([o + a * ex + b * ey for a, b in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))])
+        if np.all(corners[:, 2] > 1e-6):
+            xy = corners[:, :2] / corners[:, 2:3]
+            arr[i, _BBOX:_BBOX + 4] = (xy[:, 0].min() - 1e-9, xy[:, 1].min() - 1e-9,
+                                       xy[:, 0].max() + 1e-9, xy[:, 1].max() + 1e-9)
+        else:
+            arr[i, _BBOX:_BBOX + 4] = (-np.inf, -np.inf, np.inf, np.inf)
     return arr
 
 
 @njit(cache=True, nogil=True)
-def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float]:
-    """Front-most panel hit by the ray (x, y, 1): (panel, cell i, cell j, albedo); panel -1 = background."""
+def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float, float, float]:
+    """Front-most panel hit by the ray (x, y, 1): (panel, cell i, cell j, albedo, u, v); panel -1 = background."""
     best_t = np.inf
     best = -1
     bu = 0.0
     bv = 0.0
     for p in range(panels.shape[0]):
+        if x < panels[p, 23] or x > panels[p, 25] or y < panels[p, 24] or y > panels[p, 26]:
+            continue
         nx = panels[p, 9]
         ny = panels[p, 10]
         nz = panels[p, 11]
@@ -138,12 +151,12 @@ def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float]:
         bu = u
         bv = v
     if best < 0:
-        return -1, 0, 0, 0.0
+        return -1, 0, 0, 0.0, 0.0, 0.0
     if panels[best, 22] == 0.0:
-        return best, -99, -99, panels[best, 21]
+        return best, -99, -99, panels[best, 21], bu, bv
     s = panels[best, 16]
     if s <= 0.0:
-        return best, 0, 0, panels[best, 20]
+        return best, 0, 0, panels[best, 20], bu, bv
     cols = int(panels[best, 17])
     rows = int(panels[best, 18])
     # Cells: squares -1..cols-1 / -1..rows-1, margins clamped to -2 and cols / rows (all cells convex).
@@ -152,10 +165,10 @@ def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float]:
     i = min(max(i, -2), cols)
     j = min(max(j, -2), rows)
     if i < -1 or i > cols - 1 or j < -1 or j > rows - 1:
-        return best, i, j, panels[best, 20]
+        return best, i, j, panels[best, 20], bu, bv
     if (i + j) % 2 == 0:
-        return best, i, j, panels[best, 19]
-    return best, i, j, panels[best, 20]
+        return best, i, j, panels[best, 19], bu, bv
+    return best, i, j, panels[best, 20], bu, bv
 
 
 @njit(cache=True, nogil=True)
@@ -171,12 +184,82 @@ def _hash01(a: int, b: int, c: int) -> float:
 
 
 @njit(cache=True, nogil=True)
+def _negative_area(c: float, ga: float, gb: float) -> float:
+    """Area of {(a, b) in [0, 1]^2 : c + ga a + gb b < 0} (clip the unit square by a half-plane)."""
+    px = np.array([0.0, 1.0, 1.0, 0.0])
+    py = np.array([0.0, 0.0, 1.0, 1.0])
+    qx = np.empty(8)
+    qy = np.empty(8)
+    n = 0
+    for k in range(4):
+        x0, y0 = px[k], py[k]
+        x1, y1 = px[(k + 1) % 4], py[(k + 1) % 4]
+        f0 = c + ga * x0 + gb * y0
+        f1 = c + ga * x1 + gb * y1
+        if f0 < 0.0:
+            qx[n] = x0
+            qy[n] = y0
+            n += 1
+        if (f0 < 0.0) != (f1 < 0.0):
+            t = f0 / (f0 - f1)
+            qx[n] = x0 + t * (x1 - x0)
+            qy[n] = y0 + t * (y1 - y0)
+            n += 1
+    area = 0.0
+    for k in range(n):
+        area += qx[k] * qy[(k + 1) % n] - qx[(k + 1) % n] * qy[k]
+    return 0.5 * abs(area)
+
+
+@njit(cache=True, nogil=True)
+def _supersample(i: int, j: int, rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, bg: float,
+                 n: int) -> tuple[float, float]:
+    """Box-filtered albedo and panel coverage of pixel (i, j) from n x n stratified, jittered rays."""
+    x00 = rx[i, j]
+    x10 = rx[i, j + 1]
+    x01 = rx[i + 1, j]
+    x11 = rx[i + 1, j + 1]
+    y00 = ry[i, j]
+    y10 = ry[i, j + 1]
+    y01 = ry[i + 1, j]
+    y11 = ry[i + 1, j + 1]
+    acc = 0.0
+    cov = 0.0
+    for si in range(n):
+        for sj in range(n):
+            # One sample per sub-cell, at a position fixed by a hash of the pixel (deterministic, unbiased).
+            k = si * n + sj
+            a = (sj + _hash01(i, j, 2 * k)) / n
+            b = (si + _hash01(i, j, 2 * k + 1)) / n
+            wa = 1.0 - a
+            wb = 1.0 - b
+            x = wb * (wa * x00 + a * x10) + b * (wa * x01 + a * x11)
+            y = wb * (wa * y00 + a * y10) + b * (wa * y01 + a * y11)
+            p, _ci, _cj, alb, _u, _v = _hit(x, y, panels)
+            if p >= 0:
+                acc += alb
+                cov += 1.0
+            else:
+                acc += bg
+    inv = 1.0 / (n * n)
+    return acc * inv, cov * inv
+
+
+@njit(cache=True, nogil=True)
 def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.ndarray, n_ss: int,
-             out: np.ndarray, coverage: np.ndarray) -> int:
-    """Fill ``out`` (h, w) with the area-averaged albedo; returns the number of supersampled pixels."""
+             n_junction: int, out: np.ndarray, coverage: np.ndarray) -> int:
+    """Fill ``out`` (h, w) with the area-averaged albedo; returns the number of supersampled pixels.
+
+    Pixel kinds: uniform (four equal corner labels) -> the cell's albedo; one straight square edge
+    (two adjacent cells of one board) -> exact area on each side of the edge line, from an affine fit of
+    the board coordinate across the pixel; X-junctions (3+ labels) -> n_junction^2 rays; anything else
+    (panel outlines, occlusion boundaries) -> n_ss^2 rays.
+    """
     gh, gw = rx.shape
     labels = np.empty((gh, gw), dtype=np.int64)
     albedo = np.zeros((gh, gw), dtype=np.float64)
+    gu = np.zeros((gh, gw), dtype=np.float64)
+    gv = np.zeros((gh, gw), dtype=np.float64)
     for i in range(gh):
         for j in range(gw):
             x = rx[i, j]
@@ -184,68 +267,87 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.
             if x != x or y != y:
                 labels[i, j] = -2  # outside the camera model's valid range
                 continue
-            p, ci, cj, a = _hit(x, y, panels)
+            p, ci, cj, a, u, v = _hit(x, y, panels)
             labels[i, j] = -1 if p < 0 else (p * 1000 + (ci + 100)) * 1000 + (cj + 100)
             albedo[i, j] = a
+            gu[i, j] = u
+            gv[i, j] = v
     h = gh - 1
     w = gw - 1
-    n_edge = 0
-    inv = 1.0 / (n_ss * n_ss)
+    n_sampled = 0
     for i in range(h):
         for j in range(w):
             l00 = labels[i, j]
+            l10 = labels[i, j + 1]
+            l01 = labels[i + 1, j]
+            l11 = labels[i + 1, j + 1]
             bg = background[i, j]
-            if l00 == labels[i, j + 1] and l00 == labels[i + 1, j] and l00 == labels[i + 1, j + 1] and l00 != -2:
-                if l00 < 0:
-                    out[i, j] = bg
-                    coverage[i, j] = 0.0
-                else:
-                    out[i, j] = albedo[i, j]
-                    coverage[i, j] = 1.0
+            if l00 == l10 and l00 == l01 and l00 == l11 and l00 != -2:
+                out[i, j] = bg if l00 < 0 else albedo[i, j]
+                coverage[i, j] = 0.0 if l00 < 0 else 1.0
                 continue
-            n_edge += 1
-            x00 = rx[i, j]
-            x10 = rx[i, j + 1]
-            x01 = rx[i + 1, j]
-            x11 = rx[i + 1, j + 1]
-            y00 = ry[i, j]
-            y10 = ry[i, j + 1]
-            y01 = ry[i + 1, j]
-            y11 = ry[i + 1, j + 1]
-            if x00 != x00 or x10 != x10 or x01 != x01 or x11 != x11:
+            if l00 == -2 or l10 == -2 or l01 == -2 or l11 == -2:
                 out[i, j] = bg
                 coverage[i, j] = 0.0
                 continue
-            acc = 0.0
-            cov = 0.0
-            for si in range(n_ss):
-                for sj in range(n_ss):
-                    # Stratified jitter: one sample per sub-cell, position fixed by a hash of the pixel.
-                    k = si * n_ss + sj
-                    a = (sj + _hash01(i, j, 2 * k)) / n_ss
-                    b = (si + _hash01(i, j, 2 * k + 1)) / n_ss
-                    wa = 1.0 - a
-                    wb = 1.0 - b
-                    x = wb * (wa * x00 + a * x10) + b * (wa * x01 + a * x11)
-                    y = wb * (wa * y00 + a * y10) + b * (wa * y01 + a * y11)
-                    p, ci, cj, alb = _hit(x, y, panels)
-                    if p >= 0:
-                        acc += alb
-                        cov += 1.0
-                    else:
-                        acc += bg
-            out[i, j] = acc * inv
-            coverage[i, j] = cov * inv
-    return n_edge
+            # Distinct labels among the four corners.
+            la = l00
+            lb = l00
+            n_lab = 1
+            for l in (l10, l01, l11):
+                if l != la and (n_lab == 1 or l != lb):
+                    if n_lab == 1:
+                        lb = l
+                    n_lab += 1
+            if n_lab == 2 and la >= 0 and lb >= 0 and la // 1000000 == lb // 1000000:
+                p = la // 1000000
+                ia = (la // 1000) % 1000 - 100
+                ja = la % 1000 - 100
+                ib = (lb // 1000) % 1000 - 100
+                jb = lb % 1000 - 100
+                s = panels[p, 16]
+                if s > 0.0 and ia != -99 and ((abs(ia - ib) == 1 and ja == jb) or (abs(ja - jb) == 1 and ia == ib)):
+                    # One straight grid line u = k s (or v = k s) crosses the pixel.
+                    g = gu if ia != ib else gv
+                    edge = s * max(ia, ib) if ia != ib else s * max(ja, jb)
+                    f00 = g[i, j] - edge
+                    f10 = g[i, j + 1] - edge
+                    f01 = g[i + 1, j] - edge
+                    f11 = g[i + 1, j + 1] - edge
+                    ga = 0.5 * ((f10 - f00) + (f11 - f01))
+                    gb = 0.5 * ((f01 - f00) + (f11 - f10))
+                    c = 0.25 * (f00 + f10 + f01 + f11) - 0.5 * ga - 0.5 * gb
+                    low = _negative_area(c, ga, gb)  # the part in the cell with the smaller index
+                    # Albedo of each cell, from a corner that lies in it.
+                    a_low = 0.0
+                    a_high = 0.0
+                    for (ii, jj) in ((i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1)):
+                        if (g[ii, jj] - edge) < 0.0:
+                            a_low = albedo[ii, jj]
+                        else:
+                            a_high = albedo[ii, jj]
+                    out[i, j] = low * a_low + (1.0 - low) * a_high
+                    coverage[i, j] = 1.0
+                    continue
+            n_sampled += 1
+            # X-junctions of a pattern (3+ cells of one panel) decide corner positions: sample them densely.
+            p00 = l00 // 1000000
+            one_panel = (l00 >= 0 and l10 // 1000000 == p00 and l01 // 1000000 == p00
+                         and l11 // 1000000 == p00 and l10 >= 0 and l01 >= 0 and l11 >= 0)
+            val, cov = _supersample(i, j, rx, ry, panels, bg, n_junction if (n_lab >= 3 and one_panel) else n_ss)
+            out[i, j] = val
+            coverage[i, j] = cov
+    return n_sampled
 
 
 def render_radiance(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray,
                     t_cam_world_mm: np.ndarray, background: np.ndarray | float = 0.5,
-                    supersampling: int = 12) -> tuple[np.ndarray, np.ndarray]:
+                    supersampling: int = 12, junction_supersampling: int = 32) -> tuple[np.ndarray, np.ndarray]:
     """Area-averaged albedo image (h, w) float32 of ``panels`` over ``background``, and panel coverage.
 
     ``background`` is a float (uniform) or an (h, w) array of albedo in [0, 1] seen behind the panels.
-    ``supersampling`` is n: edge pixels get n x n rays.
+    ``supersampling`` is n: outline and occlusion pixels get n x n rays; X-junction pixels get
+    ``junction_supersampling``^2; straight square edges are integrated exactly.
     """
     w, h = camera.size
     if np.isscalar(background):
@@ -260,7 +362,7 @@ def render_radiance(camera: CameraModel, panels: list[Panel], R_cam_world: np.nd
     coverage = np.empty((h, w), dtype=np.float32)
     if len(panels) == 0:
         return bg.copy(), np.zeros((h, w), dtype=np.float32)
-    _raycast(rx, ry, packed, bg, int(supersampling), out, coverage)
+    _raycast(rx, ry, packed, bg, int(supersampling), int(max(supersampling, junction_supersampling)), out, coverage)
     return out, coverage
 
 
