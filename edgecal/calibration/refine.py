@@ -6,18 +6,18 @@ target pose in camera 0 (``T_cam0_target``) and, for each further camera c, the 
 ``T_camc_cam0``. Camera c sees target points at ``R_c0 (R_v X + t_v) + t_c0``. One box image from
 each of two cameras is one view seen by two cameras; the planar multi-view case has many views.
 
-The Jacobian is analytic (cv2.projectPoints and cv2.composeRT give their derivatives). After a robust
-(Huber) fit, corners whose residual is far outside the noise are dropped and reported, the rest is
+The Jacobian is analytic (cv2.projectPoints and cv2.composeRT give their derivatives); the solver is
+Levenberg-Marquardt. After a robust (Huber) fit, corners whose residual is far outside the noise are dropped and reported, the rest is
 fitted with plain least squares, and the covariance is s^2 (J^T J)^-1 with s^2 = SSR / (m - n).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import cv2
 import numpy as np
-import scipy.optimize
 
 from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.types import CAMERA_NAMES, Calibration, Camera, CornerSet, Pose
@@ -171,6 +171,57 @@ def _stack(x: np.ndarray, obs: list[Observation], masks: list[np.ndarray], layou
     return np.concatenate(rs), (np.vstack(js) if want_jac else None)
 
 
+def _levenberg_marquardt(fun: Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]],
+                         x0: np.ndarray, huber_px: float | None = None, max_iter: int = 100) -> np.ndarray:
+    """Minimise sum rho(r) by Levenberg-Marquardt (Marquardt's diagonal scaling).
+
+    ``rho`` is the square, or Huber's function with threshold ``huber_px`` (iteratively reweighted).
+    The normal equations are formed and solved with OpenCV: numpy's threaded BLAS is pathologically
+    slow on a shared, oversubscribed machine, and these matrices are small.
+    """
+    def cost_and_weights(r: np.ndarray) -> tuple[float, np.ndarray]:
+        if huber_px is None:
+            return float(r @ r), np.ones_like(r)
+        a = np.abs(r)
+        inside = a <= huber_px
+        cost = float(np.sum(np.where(inside, r * r, 2.0 * huber_px * a - huber_px ** 2)))
+        return cost, np.where(inside, 1.0, huber_px / np.maximum(a, 1e-300))
+
+    x = np.asarray(x0, dtype=np.float64).copy()
+    r, jac = fun(x, True)
+    cost, w = cost_and_weights(r)
+    lam = 1e-3
+    for _ in range(max_iter):
+        sw = np.sqrt(w)
+        a = cv2.mulTransposed(jac * sw[:, None], True)
+        g = cv2.gemm(jac, (w * r).reshape(-1, 1), 1.0, None, 0.0, flags=cv2.GEMM_1_T).ravel()
+        d = np.diag(a).copy()
+        d[d <= 0] = 1.0
+        improved = False
+        while lam < 1e12:
+            ok, step = cv2.solve(a + lam * np.diag(d), -g.reshape(-1, 1), flags=cv2.DECOMP_CHOLESKY)
+            if not ok:
+                ok, step = cv2.solve(a + lam * np.diag(d), -g.reshape(-1, 1), flags=cv2.DECOMP_SVD)
+            step = step.ravel()
+            x_new = x + step
+            r_new = fun(x_new, False)[0]
+            cost_new = cost_and_weights(r_new)[0] if np.all(np.isfinite(r_new)) else np.inf
+            if cost_new < cost:
+                improved = True
+                lam = max(lam * 0.1, 1e-12)
+                break
+            lam *= 10.0
+        if not improved:
+            break  # no step lowers the cost: at the minimum (to rounding)
+        small = (cost - cost_new) <= 1e-12 * max(cost, 1e-300) or np.linalg.norm(step) <= 1e-12 * (np.linalg.norm(x) + 1e-12)
+        x = x_new
+        r, jac = fun(x, True)
+        cost, w = cost_and_weights(r)
+        if small:
+            break
+    return x
+
+
 def refine(observations: list[Observation], cameras: list[Camera], view_poses: list[Pose],
            rig_poses: list[Pose] | None = None, options: RefineOptions = RefineOptions()) -> RefineResult:
     """Refine cameras and poses from ``observations`` starting at the given values.
@@ -194,16 +245,11 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
     x = layout.pack(start, view_poses, rig_poses)
     dropped: list[str] = []
 
-    def fun(p: np.ndarray) -> np.ndarray:
-        return _stack(p, obs, masks, layout, start, False)[0]
-
-    def jac(p: np.ndarray) -> np.ndarray:
-        return _stack(p, obs, masks, layout, start, True)[1]
+    def fun(p: np.ndarray, want_jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        return _stack(p, obs, masks, layout, start, want_jac)
 
     # Robust pass: a few bad corners must not drag the solution before they can be identified.
-    fit = scipy.optimize.least_squares(fun, x, jac=jac, method="trf", loss="huber",
-                                       f_scale=options.loss_scale_px, x_scale="jac", max_nfev=200)
-    x = fit.x
+    x = _levenberg_marquardt(fun, x, huber_px=options.loss_scale_px)
     for _ in range(options.max_rounds):
         cams, views, rigs = layout.unpack(x, start)
         norms = [np.linalg.norm(_project(o, cams, views, rigs, layout, n_params, False)[0].reshape(-1, 2), axis=1)
@@ -222,9 +268,7 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
                 changed = True
         if 2 * sum(int(m.sum()) for m in masks) <= n_params:
             raise DegenerateInput("too many corners were rejected as outliers to determine the calibration")
-        fit = scipy.optimize.least_squares(fun, x, jac=jac, method="trf", loss="linear", x_scale="jac",
-                                           max_nfev=200)
-        x = fit.x
+        x = _levenberg_marquardt(fun, x)
         if not changed:
             break
 
@@ -232,16 +276,16 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
     m_res = len(r)
     dof = max(m_res - n_params, 1)
     s2 = float(r @ r) / dof
-    jtj = j.T @ j
+    jtj = cv2.mulTransposed(j, True)
     # Scale columns before inverting: fx ~ 1e3 and k1 ~ 1e-1 live in one matrix.
     d = np.sqrt(np.maximum(np.diag(jtj), 1e-300))
     jtj_n = jtj / np.outer(d, d)
-    eig = np.linalg.eigvalsh(jtj_n)
-    rank_deficient = bool(eig[0] < 1e-12 * eig[-1])
+    eig = np.ravel(cv2.eigen(jtj_n)[1])
+    rank_deficient = bool(eig.min() < 1e-12 * eig.max())
     if rank_deficient:
         cov = np.full((n_params, n_params), np.inf)
     else:
-        cov = s2 * np.linalg.inv(jtj_n) / np.outer(d, d)
+        cov = s2 * cv2.invert(jtj_n, flags=cv2.DECOMP_SVD)[1] / np.outer(d, d)
     std = np.sqrt(np.abs(np.diag(cov)))
     cams, views, rigs = layout.unpack(x, start)
     residuals, inliers = [], []
