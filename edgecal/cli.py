@@ -20,6 +20,9 @@ COMMAND_MODULES = (
     "edgecal.commands.detect",
     "edgecal.commands.calibrate",
     "edgecal.commands.render",
+    "edgecal.commands.sources",
+    "edgecal.commands.capture",
+    "edgecal.commands.record",
 )
 
 

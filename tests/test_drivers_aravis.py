@@ -8,6 +8,7 @@ CI (``make test`` installs the Debian packages and PyGObject); they skip only ou
 from __future__ import annotations
 
 import fcntl
+import json
 import os
 import shutil
 import subprocess
@@ -177,3 +178,16 @@ def test_bayer_patterns_decode_to_the_right_colours(fmt: str, origin: tuple[int,
     assert tuple(int(v) for v in bgr[4, 4]) == (50, 100, 200)
     grey16 = convert_buffer(np.arange(12, dtype=np.uint16).tobytes(), 4, 3, "Mono16")
     assert grey16.dtype == np.uint16 and grey16[2, 3] == 11
+
+
+def test_sources_lists_the_fake_and_probes_by_address(fake_camera: FakeCamera, capsys: pytest.CaptureFixture,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    from edgecal.cli import main
+    for key, value in (("DEPTHAI_TELEMETRY", "0"), ("DEPTHAI_SEARCH_TIMEOUT", "300"), ("DEPTHAI_PROTOCOL", "usb")):
+        monkeypatch.setenv(key, value)
+    assert main(["sources", "--no-network", "--fake", "--probe", "aravis:127.0.0.1", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    aravis = next(d for d in data["drivers"] if d["driver"] == "aravis")
+    assert aravis["usable"] and any(s["uri"] == "aravis:fake" for s in aravis["sources"])
+    assert data["probes"] == [{"uri": "aravis:127.0.0.1", "name": data["probes"][0]["name"], "usable": True,
+                               "why": "", "size": "512x512"}]
