@@ -1,0 +1,85 @@
+"""``edgecal listen ENDPOINT``: print the pose stream of a running ``edgecal run``.
+
+Also the example for writing your own subscriber: a ZeroMQ SUB socket, connect, subscribe to the
+topics you want, and parse the second frame of each message as JSON (schema in README.md, "Pose stream").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import zmq
+
+from edgecal.errors import InputError
+
+TOPICS = ("pose", "status")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register the ``listen`` sub-command."""
+    p = subparsers.add_parser("listen", help="print the pose stream published by `edgecal run`",
+                              description="Subscribe to a pose stream and print one line per message.")
+    p.add_argument("endpoint", nargs="?", default="tcp://127.0.0.1:5560",
+                   help="where `edgecal run` publishes (default tcp://127.0.0.1:5560)")
+    p.add_argument("--topic", choices=TOPICS, action="append", help="only this topic (repeatable; default all)")
+    p.add_argument("--json", action="store_true", help="print each message as raw JSON")
+    p.add_argument("--count", type=int, default=0, help="stop after this many messages (0 = never)")
+    p.add_argument("--timeout", type=float, default=0.0,
+                   help="stop with exit code 1 after this many seconds without a message (0 = wait forever)")
+    return p
+
+
+def format_message(msg: dict) -> str:
+    """One human-readable line for a pose or status message."""
+    if msg.get("type") == "status":
+        lat = msg.get("latency_ms") or {}
+        return (f"status {msg.get('state')}: {msg.get('fps')} fps, latency median {lat.get('median')} ms "
+                f"p99 {lat.get('p99')} ms, dropped {msg.get('dropped_frames')}, detection failures "
+                f"{msg.get('detection_failures')} {msg.get('message') or ''}").rstrip()
+    head = f"pose #{msg['seq']} latency {msg['latency_ns'] / 1e6:.1f} ms"
+    q = msg["quality"]
+    if msg["pose"] is None or not msg["valid"]:
+        return f"{head} INVALID ({msg['reason']})"
+    p, o = msg["pose"]["position_m"], msg["pose"]["orientation_xyzw"]
+    return (f"{head} {q['mode']} xyz_m [{p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f}] "
+            f"q_xyzw [{o[0]:+.4f} {o[1]:+.4f} {o[2]:+.4f} {o[3]:+.4f}] "
+            f"rms {q['rms_px']} px std {q['position_std_mm']} mm {q['rotation_std_deg']} deg")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Subscribe and print until --count messages, --timeout of silence, or Ctrl-C."""
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.SUB)
+    sock.setsockopt(zmq.LINGER, 0)
+    try:
+        sock.connect(args.endpoint)
+    except zmq.ZMQError as exc:
+        sock.close()
+        ctx.term()
+        raise InputError(f"{args.endpoint}: not a ZeroMQ endpoint ({exc}); e.g. tcp://127.0.0.1:5560") from None
+    for topic in args.topic or TOPICS:
+        sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
+    poller = zmq.Poller()
+    poller.register(sock, zmq.POLLIN)
+    received = 0
+    try:
+        last = time.monotonic()
+        while args.count <= 0 or received < args.count:
+            if not poller.poll(200):
+                if args.timeout > 0 and time.monotonic() - last > args.timeout:
+                    print(f"edgecal listen: no message from {args.endpoint} for {args.timeout:g} s",
+                          file=sys.stderr)
+                    return 1
+                continue
+            _topic, body = sock.recv_multipart()
+            last = time.monotonic()
+            msg = json.loads(body)
+            print(json.dumps(msg) if args.json else format_message(msg), flush=True)
+            received += 1
+    finally:
+        sock.close(linger=0)
+        ctx.term()
+    return 0

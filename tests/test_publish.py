@@ -1,0 +1,145 @@
+"""The pose stream: message schema, a publisher that never blocks, `edgecal listen`."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from edgecal.commands import listen
+from edgecal.errors import ConfigError
+from edgecal.pose import Pose
+from edgecal.publish import (PosePublisher, check_endpoint, decode, encode, is_local_endpoint, pose_message,
+                             status_message)
+
+
+def run_listen(argv: list[str]) -> int:
+    """Run `edgecal listen ARGV` through its own argument parser."""
+    import argparse
+    parser = argparse.ArgumentParser()
+    listen.add_parser(parser.add_subparsers())
+    return listen.run(parser.parse_args(["listen", *argv]))
+
+
+def free_endpoint() -> str:
+    """A tcp endpoint on a free localhost port."""
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp://127.0.0.1:{s.getsockname()[1]}"
+
+
+def a_pose() -> Pose:
+    return Pose(np.eye(3), np.array([0.1, -0.2, 1.0]), np.eye(6) * 1e-8, "stereo", True, "", 0.12, 60, 55, 50,
+                ("front", "left"))
+
+
+def test_pose_message_round_trip() -> None:
+    msg = decode(encode(pose_message(a_pose(), 7, 1_000_000, 13_000_000)))
+    assert msg["version"] == 1 and msg["type"] == "pose" and msg["seq"] == 7
+    assert msg["latency_ns"] == 12_000_000
+    assert msg["pose"]["position_m"] == [0.1, -0.2, 1.0]
+    assert msg["pose"]["orientation_xyzw"] == [0.0, 0.0, 0.0, 1.0]
+    assert len(msg["covariance"]) == 36 and msg["covariance"][0] == 1e-8
+    assert msg["valid"] and msg["quality"]["boards"] == ["front", "left"]
+
+
+def test_invalid_pose_message_has_nulls_not_nan() -> None:
+    body = encode(pose_message(Pose.invalid("no board detected"), 1, 0, 5))
+    assert b"NaN" not in body
+    msg = decode(body)
+    assert msg["valid"] is False and msg["pose"] is None and msg["covariance"] is None
+    assert msg["reason"] == "no board detected"
+
+
+def test_status_message() -> None:
+    msg = decode(encode(status_message("running", {"fps": 29.99712, "dropped_frames": 3,
+                                                   "latency_ms": {"median": 12.0, "p99": 20.5}}, 99)))
+    assert msg["type"] == "status" and msg["fps"] == 29.997 and msg["latency_ms"]["p99"] == 20.5
+
+
+def test_endpoint_must_be_local_unless_allowed() -> None:
+    assert is_local_endpoint("tcp://127.0.0.1:5560") and is_local_endpoint("tcp://localhost:1")
+    assert is_local_endpoint("ipc:///tmp/x") and is_local_endpoint("tcp://[::1]:5560")
+    assert not is_local_endpoint("tcp://*:5560") and not is_local_endpoint("tcp://0.0.0.0:5560")
+    with pytest.raises(ConfigError, match="allow_remote"):
+        check_endpoint("tcp://*:5560", allow_remote=False)
+    assert check_endpoint("tcp://*:5560", allow_remote=True)
+    with pytest.raises(ConfigError, match="port"):
+        check_endpoint("tcp://127.0.0.1", allow_remote=False)
+    with pytest.raises(ConfigError):
+        check_endpoint("http://127.0.0.1:80", allow_remote=False)
+
+
+def test_publisher_never_blocks_on_a_subscriber_that_stops_reading() -> None:
+    endpoint = free_endpoint()
+    ctx = zmq.Context()
+    sub = ctx.socket(zmq.SUB)
+    sub.setsockopt(zmq.LINGER, 0)
+    sub.setsockopt(zmq.RCVHWM, 1)
+    sub.setsockopt(zmq.RCVBUF, 4096)
+    sub.setsockopt(zmq.SUBSCRIBE, b"")
+    body = {"filler": "x" * 4000}
+    with PosePublisher(endpoint, hwm=4) as pub:
+        sub.connect(endpoint)
+        deadline = time.monotonic() + 5
+        while not sub.poll(10):                 # wait until the subscription has reached the publisher
+            pub.send_status(body)
+            assert time.monotonic() < deadline
+        sub.recv_multipart()
+        # The subscriber now stops reading. 20,000 messages of 4 kB (80 MB) overflow every buffer:
+        # a blocking send would hang here; a non-blocking one drops and returns.
+        t0 = time.monotonic()
+        results = [pub.send_pose(body) for _ in range(20_000)]
+        elapsed = time.monotonic() - t0
+        assert elapsed < 10.0
+        assert results.count(False) == pub.send_failures
+        # The subscriber wakes up: it gets at most a few buffers' worth, the rest were dropped for it.
+        received = 0
+        while sub.poll(200):
+            sub.recv_multipart()
+            received += 1
+        assert received < 20_000 // 2
+    sub.close(linger=0)
+    ctx.term()
+
+
+def test_bind_to_a_taken_port_is_a_device_error() -> None:
+    endpoint = free_endpoint()
+    with PosePublisher(endpoint):
+        from edgecal.errors import DeviceError
+        with pytest.raises(DeviceError, match="cannot bind"):
+            PosePublisher(endpoint)
+
+
+def test_listen_prints_the_stream(capsys: pytest.CaptureFixture) -> None:
+    endpoint = free_endpoint()
+    stop = threading.Event()
+
+    def publish() -> None:
+        with PosePublisher(endpoint) as pub:
+            seq = 0
+            while not stop.is_set():
+                pub.send_pose(pose_message(a_pose(), seq, time.monotonic_ns() - 5_000_000, time.monotonic_ns()))
+                pub.send_pose(pose_message(Pose.invalid("no board detected"), seq, 0, 1))
+                seq += 1
+                time.sleep(0.01)
+
+    th = threading.Thread(target=publish)
+    th.start()
+    try:
+        assert run_listen([endpoint, "--count", "2", "--timeout", "5"]) == 0
+    finally:
+        stop.set()
+        th.join()
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2
+    assert any("stereo xyz_m [+0.1000 -0.2000 +1.0000]" in line for line in lines)
+    assert any("INVALID (no board detected)" in line for line in lines)
+
+
+def test_listen_times_out_without_publisher(capsys: pytest.CaptureFixture) -> None:
+    assert run_listen([free_endpoint(), "--timeout", "0.3"]) == 1
