@@ -1,0 +1,387 @@
+#!/usr/bin/env python3
+"""Calibration benchmark: edgecal's one-shot box calibration against OpenCV on the same corners, single thread.
+
+    .venv/bin/python bench/calibrate.py [--pairs 8] [--draws 2] [--noise 0,0.1,0.3] [--distortion k1k2p1p2]
+                                        [--json out/bench_calibrate.json] [--force]
+
+Box stereo pairs are rendered by edgecal.synth (100 mm box, 250-350 mm away, 1280x800, known truth),
+edgecal.detect finds the corners and calibration.assign labels them. Two corner sources are scored:
+"exact" = the true projections of the detected corners plus Gaussian noise (the calibration alone), and
+"detected" = the detector's corners plus the same extra noise (detector error included). On each:
+
+- edgecal: Tsai and DLT starts, robust refinement, joint stereo refinement (calibration.stereo);
+- OpenCV: calibrateCamera with CALIB_USE_INTRINSIC_GUESS from a DLT start (OpenCV cannot start from a
+  non-planar target alone), per camera, then stereoCalibrateExtended with CALIB_USE_INTRINSIC_GUESS;
+
+and printed as medians over pairs x draws: focal error (%), principal point error (px), k1 error,
+rotation error (deg), baseline error (mm), reprojection RMS (px), 3-D reconstruction error (mm, mean
+over corners, as the paper's Table 2), time (ms) and the ratio OpenCV / edgecal. For edgecal also the
+z-scores |error| / reported std of fx and of T (honest std: median z ~ 0.67), and Tsai vs DLT starts.
+
+Real sets (skipped when ../shared/data is absent): opencv_stereo_9x6 (planar multi-view, edgecal's
+detector and planar path vs OpenCV's findChessboardCorners + stereoCalibrate, against Bouguet's
+published result) and ortho3_box_stereo (one-shot, against the authors' K and T).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+cv2.setNumThreads(1)
+
+import edgecal  # noqa: E402
+from edgecal.calibration.assign import assign_stereo  # noqa: E402
+from edgecal.calibration.dlt import calibrate_dlt  # noqa: E402
+from edgecal.calibration.mono import linear_start  # noqa: E402
+from edgecal.calibration.planar import calibrate_planar, opencv_flags  # noqa: E402
+from edgecal.calibration.refine import RefineOptions  # noqa: E402
+from edgecal.calibration.stereo import calibrate_box_stereo, triangulate  # noqa: E402
+from edgecal.calibration.types import Camera, CornerSet, Pose  # noqa: E402
+from edgecal.images import load_grey  # noqa: E402
+from edgecal.synth.scenes import box_stereo, box_target  # noqa: E402
+from edgecal.targets import load_target, planar_target  # noqa: E402
+
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
+METRICS = ("focal_pct", "pp_px", "k1_abs", "rot_deg", "baseline_mm", "rms_px", "recon_mm", "ms")
+
+
+def _common(left: CornerSet, right: CornerSet) -> tuple[CornerSet, CornerSet]:
+    keys = [k for k in left.keys if k in set(right.keys)]
+    il = [left.keys.index(k) for k in keys]
+    ir = [right.keys.index(k) for k in keys]
+    return (CornerSet(left.object_mm[il], left.image_px[il], tuple(keys)),
+            CornerSet(right.object_mm[ir], right.image_px[ir], tuple(keys)))
+
+
+def _truth(pair: dict) -> dict:
+    out = {}
+    for side in ("left", "right"):
+        c = pair[side]
+        out[side] = Camera(np.array(c["K"]), np.array(c["dist"], dtype=float))
+        out[side + "_pose"] = Pose.from_rt(np.array(c["R_cam_world"]), np.array(c["t_cam_world_mm"]))
+    out["R"] = np.array(pair["R_right_left"])
+    out["T"] = np.array(pair["T_right_left_mm"])
+    return out
+
+
+def _exact(cs: CornerSet, cam: Camera, pose: Pose) -> CornerSet:
+    px, _ = cv2.projectPoints(cs.object_mm, pose.rvec, pose.tvec, cam.camera_matrix, cam.dist_coeffs)
+    return CornerSet(cs.object_mm, px.reshape(-1, 2), cs.keys)
+
+
+def _noisy(cs: CornerSet, sigma: float, rng: np.random.Generator) -> CornerSet:
+    return CornerSet(cs.object_mm, cs.image_px + rng.normal(0.0, sigma, cs.image_px.shape), cs.keys)
+
+
+def _angle_deg(r: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+def _score(cams: list[Camera], r: np.ndarray, t: np.ndarray, box_pose: Pose, rms: float, truth: dict,
+           left: CornerSet, right: CornerSet, ms: float) -> dict:
+    tc = [truth["left"], truth["right"]]
+    focal = np.mean([abs(c.camera_matrix[i, i] / g.camera_matrix[i, i] - 1) * 100 for c, g in zip(cams, tc)
+                     for i in (0, 1)])
+    pp = np.mean([np.linalg.norm(c.camera_matrix[:2, 2] - g.camera_matrix[:2, 2]) for c, g in zip(cams, tc)])
+    k1 = np.mean([abs(c.dist_coeffs[0] - g.dist_coeffs[0]) for c, g in zip(cams, tc)])
+    l, rr = _common(left, right)
+    est = triangulate(cams[0], cams[1], Pose.from_rt(r, t), l.image_px, rr.image_px)
+    recon = float(np.mean(np.linalg.norm(est - box_pose.apply(l.object_mm), axis=1)))
+    return {"focal_pct": float(focal), "pp_px": float(pp), "k1_abs": float(k1),
+            "rot_deg": _angle_deg(r @ truth["R"].T), "baseline_mm": float(np.linalg.norm(t - truth["T"])),
+            "rms_px": float(rms), "recon_mm": recon, "ms": ms}
+
+
+def run_edgecal(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: dict, options: RefineOptions) -> dict:
+    t0 = time.perf_counter()
+    cal = calibrate_box_stereo(left, right, size, options)
+    ms = 1e3 * (time.perf_counter() - t0)
+    s = _score(cal.cameras, cal.rotation, cal.translation_mm, cal.view_poses[0], cal.rms_px, truth, left, right, ms)
+    s["z_fx"] = float(abs(cal.cameras[0].camera_matrix[0, 0] - truth["left"].camera_matrix[0, 0]) / cal.camera_std[0]["fx"])
+    s["z_T"] = float(np.mean(np.abs(cal.translation_mm - truth["T"]) / cal.translation_std_mm))
+    s["dropped"] = len(cal.dropped)
+    for side, info in cal.init.items():
+        for m in ("tsai", "dlt"):
+            s[f"kept_{m}"] = s.get(f"kept_{m}", 0) + int(bool(info.get("chosen_" + m)))
+    return s
+
+
+def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: dict, distortion: str) -> dict:
+    t0 = time.perf_counter()
+    flags = opencv_flags(distortion) | cv2.CALIB_USE_INTRINSIC_GUESS
+    cams, poses = [], []
+    for cs in (left, right):
+        lin = calibrate_dlt(cs.object_mm, cs.image_px)
+        _, k, d, rv, tv = cv2.calibrateCamera([cs.object_mm.astype(np.float32)],
+                                              [cs.image_px.astype(np.float32).reshape(-1, 1, 2)], size,
+                                              lin.camera_matrix.copy(), np.zeros(5), flags=flags)
+        cams.append(Camera(k, np.ravel(d)[:5]))
+        poses.append(Pose(np.ravel(rv[0]), np.ravel(tv[0])))
+    l, r = _common(left, right)
+    out = cv2.stereoCalibrateExtended([l.object_mm.astype(np.float32)], [l.image_px.astype(np.float32).reshape(-1, 1, 2)],
+                                      [r.image_px.astype(np.float32).reshape(-1, 1, 2)],
+                                      cams[0].camera_matrix, cams[0].dist_coeffs, cams[1].camera_matrix,
+                                      cams[1].dist_coeffs, size, np.eye(3), np.zeros((3, 1)),
+                                      flags=opencv_flags(distortion) | cv2.CALIB_USE_INTRINSIC_GUESS)
+    rms, k1, d1, k2, d2, rot, t = out[:7]
+    rvecs, tvecs = out[9], out[10]
+    ms = 1e3 * (time.perf_counter() - t0)
+    cams = [Camera(k1, np.ravel(d1)[:5]), Camera(k2, np.ravel(d2)[:5])]
+    return _score(cams, rot, np.ravel(t), Pose(np.ravel(rvecs[0]), np.ravel(tvecs[0])), rms, truth, left, right, ms)
+
+
+def _linear_errors(cs: CornerSet, size: tuple[int, int], cam: Camera) -> dict:
+    out = {}
+    for m in ("tsai", "dlt"):
+        try:
+            lin = linear_start(cs, size, m)
+            out[f"{m}_focal_pct"] = float(abs(lin.camera_matrix[0, 0] / cam.camera_matrix[0, 0] - 1) * 100)
+            out[f"{m}_rms_px"] = lin.rms_px
+        except edgecal.errors.EdgecalError:
+            out[f"{m}_focal_pct"] = float("nan")
+    return out
+
+
+def _median_table(rows: list[dict], keys: tuple[str, ...]) -> dict:
+    return {k: float(np.nanmedian([r[k] for r in rows])) for k in keys if rows and k in rows[0]}
+
+
+def synthetic(args: argparse.Namespace) -> dict:
+    target = box_target()
+    options = RefineOptions(distortion=args.distortion)
+    noises = [float(v) for v in args.noise.split(",")]
+    results: dict = {"pairs": 0, "failed": [], "detector_rms_px": [], "sets": {}}
+    linear: list[dict] = []
+    rng = np.random.default_rng(12345)
+    for seed in range(args.pairs):
+        view = box_stereo(seed, size=(1280, 800), distance_mm=(250.0, 350.0))
+        truth = _truth(view.pair)
+        size = tuple(view.pair["left"]["image_size"])
+        dl, dr = edgecal.detect(view.left.image, target), edgecal.detect(view.right.image, target)
+        a_l, a_r = assign_stereo(dl, dr, target)
+        if a_l is None or a_r is None or len(a_l.corners) < 40 or len(a_r.corners) < 40:
+            results["failed"].append(seed)
+            continue
+        results["pairs"] += 1
+        exact = (_exact(a_l.corners, truth["left"], truth["left_pose"]),
+                 _exact(a_r.corners, truth["right"], truth["right_pose"]))
+        for d, e in zip((a_l.corners, a_r.corners), exact):
+            results["detector_rms_px"].append(float(np.sqrt(np.mean(np.sum((d.image_px - e.image_px) ** 2, axis=1)))))
+        linear.append(_linear_errors(_noisy(exact[0], 0.1, rng), size, truth["left"]))
+        for source, base in (("exact", exact), ("detected", (a_l.corners, a_r.corners))):
+            for sigma in noises:
+                for _ in range(args.draws if sigma > 0 or source == "exact" else 1):
+                    left, right = _noisy(base[0], sigma, rng), _noisy(base[1], sigma, rng)
+                    key = f"{source} +{sigma:g}px"
+                    bucket = results["sets"].setdefault(key, {"edgecal": [], "opencv": []})
+                    try:
+                        bucket["edgecal"].append(run_edgecal(left, right, size, truth, options))
+                    except edgecal.errors.EdgecalError as exc:
+                        print(f"seed {seed} {key}: edgecal failed: {exc}", file=sys.stderr)
+                    try:
+                        bucket["opencv"].append(run_opencv(left, right, size, truth, args.distortion))
+                    except cv2.error as exc:
+                        print(f"seed {seed} {key}: OpenCV failed: {str(exc).splitlines()[-1]}", file=sys.stderr)
+                    if sigma == 0 and source == "exact":
+                        break
+    results["linear_starts_0.1px"] = _median_table(linear, ("tsai_focal_pct", "dlt_focal_pct", "tsai_rms_px", "dlt_rms_px"))
+    return results
+
+
+def print_synthetic(res: dict) -> None:
+    print(f"\n== box stereo, {res['pairs']} rendered pairs (1280x800, 100 mm box at 250-350 mm), "
+          f"failed detections: {res['failed'] or 'none'}; detector corner RMS vs truth (median) "
+          f"{np.median(res['detector_rms_px']):.3f} px")
+    head = f"{'corners':<18}{'method':<9}" + "".join(f"{m:>12}" for m in METRICS) + f"{'z_fx':>7}{'z_T':>7}"
+    print(head)
+    for key, bucket in res["sets"].items():
+        med = {}
+        for method in ("edgecal", "opencv"):
+            rows = bucket[method]
+            if not rows:
+                continue
+            med[method] = _median_table(rows, METRICS + ("z_fx", "z_T"))
+            line = f"{key:<18}{method:<9}" + "".join(f"{med[method][m]:>12.4f}" for m in METRICS)
+            if method == "edgecal":
+                line += f"{med[method]['z_fx']:>7.2f}{med[method]['z_T']:>7.2f}"
+            print(line)
+        if "edgecal" in med and "opencv" in med:
+            print(f"{'':<18}{'ratio':<9}" + "".join(
+                f"{med['opencv'][m] / med['edgecal'][m]:>12.2f}" if med["edgecal"][m] > 1e-6 else f"{'-':>12}"
+                for m in METRICS))
+        n = len(bucket["edgecal"])
+        if n:
+            kept = {m: sum(r.get(f"kept_{m}", 0) for r in bucket["edgecal"]) for m in ("tsai", "dlt")}
+            p90 = {m: float(np.percentile([r[m] for r in bucket["edgecal"]], 90)) for m in ("focal_pct", "baseline_mm", "recon_mm")}
+            print(f"{'':<18}edgecal p90: focal {p90['focal_pct']:.3f} %, baseline {p90['baseline_mm']:.3f} mm, "
+                  f"recon {p90['recon_mm']:.4f} mm; start kept: tsai {kept['tsai']}, dlt {kept['dlt']} (of {2 * n}); "
+                  f"corners dropped per pair (mean) {np.mean([r['dropped'] for r in bucket['edgecal']]):.1f}")
+    lin = res["linear_starts_0.1px"]
+    print(f"linear starts alone (exact +0.1 px, left camera, median): Tsai focal error {lin['tsai_focal_pct']:.2f} % "
+          f"(RMS {lin['tsai_rms_px']:.2f} px), DLT {lin['dlt_focal_pct']:.2f} % (RMS {lin['dlt_rms_px']:.2f} px)")
+
+
+def _cv_corners(path: Path, board) -> CornerSet | None:
+    g = load_grey(path)
+    ok, c = cv2.findChessboardCorners(g, (board.cols, board.rows),
+                                      flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if not ok:
+        return None
+    c = cv2.cornerSubPix(g, c, (11, 11), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 30, 0.01))
+    return CornerSet(board.board_points_mm(), c.reshape(-1, 2).astype(float),
+                     tuple((board.name, int(a), int(b)) for a, b in board.ids()))
+
+
+def _edgecal_corners(path: Path, target) -> CornerSet:
+    board = target.boards[0]
+    dets = [d for d in edgecal.detect(load_grey(path), target) if d.complete]
+    if not dets:
+        return CornerSet(np.zeros((0, 3)), np.zeros((0, 2)), ())
+    d = dets[0]
+    return CornerSet(board.board_points_mm(d.ids), np.asarray(d.corners, float),
+                     tuple((board.name, int(a), int(b)) for a, b in d.ids))
+
+
+def bouguet(args: argparse.Namespace) -> dict | None:
+    d = REAL / "opencv_stereo_9x6"
+    if not d.is_dir():
+        print("\n== opencv_stereo_9x6: absent, skipped")
+        return None
+    target = planar_target(9, 6, 30.0)
+    lp, rp = sorted(d.glob("left*.jpg")), sorted(d.glob("right*.jpg"))
+    out = {}
+    for name, getter in (("edgecal", lambda p: _edgecal_corners(p, target)),
+                         ("opencv", lambda p: _cv_corners(p, target.boards[0]))):
+        t0 = time.perf_counter()
+        left = [getter(p) for p in lp]
+        right = [getter(p) for p in rp]
+        t_det = time.perf_counter() - t0
+        empty = CornerSet(np.zeros((0, 3)), np.zeros((0, 2)), ())
+        left = [c if c is not None else empty for c in left]
+        right = [c if c is not None else empty for c in right]
+        found = sum(len(c) > 0 for c in left + right)
+        t0 = time.perf_counter()
+        if name == "edgecal":
+            cal = calibrate_planar(left, right, (640, 480), RefineOptions(distortion="k1k2p1p2k3"))
+            k = [c.camera_matrix for c in cal.cameras]
+            t_vec, om, rms = cal.translation_mm, cv2.Rodrigues(cal.rotation)[0].ravel(), cal.rms_px
+            extra = {"T_std_mm": cal.translation_std_mm.tolist(), "fx_std": cal.camera_std[0]["fx"],
+                     "recon_mm": cal.reconstruction.mean_mm, "epipolar_rms_px": cal.rectification.epipolar_rms_px,
+                     "dropped": len(cal.dropped), "pairs": len(cal.view_index)}
+        else:
+            pairs = [(a, b) for a, b in zip(left, right) if len(a) and len(b)]
+            obj = [a.object_mm.astype(np.float32) for a, _ in pairs]
+            il = [a.image_px.astype(np.float32).reshape(-1, 1, 2) for a, _ in pairs]
+            ir = [b.image_px.astype(np.float32).reshape(-1, 1, 2) for _, b in pairs]
+            _, k1, d1, _, _ = cv2.calibrateCamera(obj, il, (640, 480), None, None)
+            _, k2, d2, _, _ = cv2.calibrateCamera(obj, ir, (640, 480), None, None)
+            rms, k1, d1, k2, d2, r, t = cv2.stereoCalibrate(obj, il, ir, k1, d1, k2, d2, (640, 480),
+                                                            flags=cv2.CALIB_USE_INTRINSIC_GUESS)[:7]
+            k, t_vec, om = [k1, k2], np.ravel(t), cv2.Rodrigues(r)[0].ravel()
+            extra = {"pairs": len(pairs)}
+        t_cal = time.perf_counter() - t0
+        out[name] = {"found": found, "detect_s": t_det, "calibrate_s": t_cal, "fx_left": k[0][0, 0],
+                     "fy_left": k[0][1, 1], "cc_left": k[0][:2, 2].tolist(), "fx_right": k[1][0, 0],
+                     "T_mm": np.ravel(t_vec).tolist(), "om_rad": om.tolist(), "rms_px": float(rms), **extra}
+    return out
+
+
+def print_bouguet(res: dict | None) -> None:
+    if res is None:
+        return
+    print("\n== opencv_stereo_9x6 (13 pairs, 30 mm squares), planar stereo; Bouguet published: left fc (533.00, "
+          "533.15), cc (341.59, 234.26); right fc 536.98; T (-99.80, 1.12, 0.05) ± (0.14, 0.11, 0.50) mm; "
+          "om (0.00669, 0.00452, -0.00350) rad")
+    for name, r in res.items():
+        t = r["T_mm"]
+        line = (f"{name:<8} boards found {r['found']}/26, pairs used {r['pairs']}, left fc ({r['fx_left']:.2f}, "
+                f"{r['fy_left']:.2f}) cc ({r['cc_left'][0]:.2f}, {r['cc_left'][1]:.2f}), right fx {r['fx_right']:.2f}, "
+                f"T ({t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}) mm, om ({', '.join(f'{v:.5f}' for v in r['om_rad'])}), "
+                f"RMS {r['rms_px']:.3f} px, detect {r['detect_s']:.2f} s, calibrate {r['calibrate_s']:.2f} s")
+        if "T_std_mm" in r:
+            line += (f"\n{'':<8} T std ({', '.join(f'{v:.2f}' for v in r['T_std_mm'])}) mm, fx std {r['fx_std']:.2f}, "
+                     f"reconstruction {r['recon_mm']:.3f} mm, epipolar RMS {r['epipolar_rms_px']:.3f} px, "
+                     f"{r['dropped']} corners dropped")
+        print(line)
+
+
+def ortho3() -> dict | None:
+    d = REAL / "ortho3_box_stereo"
+    if not d.is_dir():
+        print("\n== ortho3_box_stereo: absent, skipped")
+        return None
+    target = load_target(Path(__file__).resolve().parents[1] / "configs" / "targets" / "ortho3-corner.yaml")
+    out = {}
+    for model in ("none", "k1k2"):
+        li, ri = load_grey(d / "left.jpg"), load_grey(d / "right.jpg")
+        a_l, a_r = assign_stereo(edgecal.detect(li, target), edgecal.detect(ri, target), target)
+        cal = calibrate_box_stereo(a_l.corners, a_r.corners, (li.shape[1], li.shape[0]),
+                                   RefineOptions(distortion=model, outlier_sigmas=1e9))
+        out[model] = {"K_left": cal.cameras[0].camera_matrix.tolist(), "K_right": cal.cameras[1].camera_matrix.tolist(),
+                      "std_left": cal.camera_std[0], "T_mm": cal.translation_mm.tolist(),
+                      "T_std_mm": cal.translation_std_mm.tolist(),
+                      "rot_deg_vs_authors": _angle_deg(cal.rotation @ np.array(
+                          [[0.9038, -0.2757, 0.3275], [0.2804, 0.9593, 0.0336], [-0.3234, 0.0615, 0.9443]]).T),
+                      "rms_px": cal.rms_px, "recon_mm": cal.reconstruction.mean_mm, "corners": [len(a_l.corners), len(a_r.corners)]}
+    return out
+
+
+def print_ortho3(res: dict | None) -> None:
+    if res is None:
+        return
+    print("\n== ortho3_box_stereo (one shot, 1600x1200); authors (Hall linear, no distortion): K1 f (1649.4, 1654.1) "
+          "c (793.3, 614.4); K2 f (1631.7, 1625.7) c (789.1, 634.8); T (-229.2, -17.5, 38.2) mm")
+    for model, r in res.items():
+        kl, kr, t, ts = np.array(r["K_left"]), np.array(r["K_right"]), r["T_mm"], r["T_std_mm"]
+        print(f"edgecal distortion={model:<5} corners {r['corners']}: K1 f ({kl[0, 0]:.1f}, {kl[1, 1]:.1f}) ± "
+              f"{r['std_left']['fx']:.1f} c ({kl[0, 2]:.1f}, {kl[1, 2]:.1f}); K2 f ({kr[0, 0]:.1f}, {kr[1, 1]:.1f}) "
+              f"c ({kr[0, 2]:.1f}, {kr[1, 2]:.1f}); T ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) ± ({ts[0]:.1f}, {ts[1]:.1f}, "
+              f"{ts[2]:.1f}) mm; R differs from the authors' by {r['rot_deg_vs_authors']:.3f} deg; RMS {r['rms_px']:.2f} px; "
+              f"reconstruction {r['recon_mm']:.2f} mm")
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--pairs", type=int, default=8, help="rendered box pairs (default 8)")
+    p.add_argument("--draws", type=int, default=2, help="noise draws per pair and level (default 2)")
+    p.add_argument("--noise", default="0,0.1,0.3", help="extra corner noise levels in px (default 0,0.1,0.3)")
+    p.add_argument("--distortion", default="k1k2p1p2", help="distortion model of both methods (the renderer's "
+                   "cameras have k1 k2 p1 p2)")
+    p.add_argument("--json", help="also write the raw results here")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
+    p.add_argument("--no-real", action="store_true", help="skip the real data sets")
+    args = p.parse_args()
+    if args.json and Path(args.json).exists() and not args.force:
+        print(f"bench/calibrate.py: error: {args.json} exists; pass --force to replace it", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    res = {"synthetic": synthetic(args)}
+    print_synthetic(res["synthetic"])
+    if not args.no_real:
+        res["bouguet"] = bouguet(args)
+        print_bouguet(res["bouguet"])
+        res["ortho3"] = ortho3()
+        print_ortho3(res["ortho3"])
+    print(f"\n(total {time.perf_counter() - t0:.0f} s, single thread, OpenCV {cv2.__version__})")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(args.json).with_suffix(".tmp")
+        tmp.write_text(json.dumps(res, indent=1, default=float))
+        os.replace(tmp, args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
