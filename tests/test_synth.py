@@ -1,0 +1,384 @@
+"""The renderer (edgecal.synth): camera model, ray-caster, ground truth, scenes, writer and CLI.
+
+Every other test of the detector, the calibration and the live loop trusts this renderer's truth, so the
+truth is checked against independent references: OpenCV's projectPoints, an analytic box-filtered
+checkerboard, the point symmetry of the rendered X-junctions, and cv2.cornerSubPix.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from edgecal import cli
+from edgecal.synth.camera import CameraModel, look_at, rotation_about, undistort_normalized
+from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
+from edgecal.synth.render import Panel, board_panel_extent, panels_from_target, render_radiance
+from edgecal.synth.scenes import (box_stereo, hard_view, multi_view, negative_view, planar_view, random_camera,
+                                  robot_sequence, robot_target)
+from edgecal.synth.truth import GT_FORMAT
+from edgecal.synth.view import render_view
+from edgecal.targets import planar_target
+
+STRONG = (-0.28, 0.09, 0.0012, -0.0008, -0.015)
+
+
+def _strong_camera(size=(640, 480)) -> CameraModel:
+    return CameraModel.from_fov(size, 70.0, STRONG, (3.2, -2.7), 1.002)
+
+
+# --- camera model ---------------------------------------------------------------------------------------
+
+def test_projection_matches_opencv() -> None:
+    cam = _strong_camera()
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-400, 400, 200), rng.uniform(-300, 300, 200), rng.uniform(500, 1500, 200)])
+    R = rotation_about(np.array([0.3, -1.0, 0.2]), 0.2)
+    t = np.array([10.0, -20.0, 30.0])
+    ours = cam.project_world(pts, R, t)
+    ref, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), cv2.Rodrigues(R)[0], t, cam.K, cam.dist)
+    np.testing.assert_allclose(ours, ref.reshape(-1, 2), atol=1e-8)
+
+
+def test_pixel_to_ray_inverts_projection() -> None:
+    cam = _strong_camera()
+    w, h = cam.size
+    px = np.stack(np.meshgrid(np.linspace(-0.5, w - 0.5, 41), np.linspace(-0.5, h - 0.5, 31)), -1).reshape(-1, 2)
+    rays = cam.pixel_to_ray(px)
+    assert np.all(np.isfinite(rays))
+    back = cam.project(rays * 700.0)
+    assert np.abs(back - px).max() < 1e-6  # far below the 0.01 px the truth needs
+
+
+def test_corner_ray_grid_is_the_pixel_corner_grid() -> None:
+    cam = _strong_camera((64, 48))
+    rx, ry = cam.corner_ray_grid()
+    assert rx.shape == (49, 65)
+    # Grid point (i, j) is pixel point (j - 0.5, i - 0.5): the corner shared by pixels (j-1, i-1) .. (j, i).
+    back = cam.project(np.stack([rx.ravel(), ry.ravel(), np.ones(rx.size)], 1))
+    gx, gy = np.meshgrid(np.arange(65) - 0.5, np.arange(49) - 0.5)
+    np.testing.assert_allclose(back, np.stack([gx.ravel(), gy.ravel()], 1), atol=1e-7)
+
+
+def test_undistort_reports_fold_over_as_nan() -> None:
+    # Beyond the radius where strong barrel distortion folds back there is no inverse: NaN, not garbage.
+    x, y = undistort_normalized(np.array([0.1, 5.0]), np.array([0.0, 5.0]), np.array([-0.5, 0.0, 0.0, 0.0, 0.0]))
+    assert np.isfinite(x[0]) and np.isnan(x[1])
+
+
+def test_look_at_conventions() -> None:
+    R, t = look_at(np.array([0.0, 0.0, -500.0]), np.zeros(3), up=np.array([0.0, -1.0, 0.0]))
+    np.testing.assert_allclose(R, np.eye(3), atol=1e-12)  # x right, y down, z forward
+    np.testing.assert_allclose(t, [0.0, 0.0, 500.0])
+    R, t = look_at(np.array([100.0, 200.0, 300.0]), np.array([0.0, 50.0, 0.0]))
+    assert abs(np.linalg.det(R) - 1.0) < 1e-12
+    centre = R @ np.array([0.0, 50.0, 0.0]) + t
+    assert abs(centre[0]) < 1e-9 and abs(centre[1]) < 1e-9 and centre[2] > 0
+
+
+# --- the ray-caster against an analytic reference ------------------------------------------------------
+
+def _prim(x: np.ndarray) -> np.ndarray:
+    """Integral from 0 to x of (-1)^floor(t)."""
+    k = np.floor(x)
+    r = x - k
+    odd = np.mod(k, 2) == 1
+    return np.where(odd, 1.0 - r, r)
+
+
+def _axis_integrals(n: int, c0: float, sq: float, n_squares: int) -> tuple[np.ndarray, np.ndarray]:
+    # Pixel k spans [k - 0.5, k + 0.5]; in square units the squares span [-1, n_squares - 1].
+    lo = np.clip((np.arange(n) - 0.5 - c0) / sq, -1, n_squares - 1)
+    hi = np.clip((np.arange(n) + 0.5 - c0) / sq, -1, n_squares - 1)
+    return (hi - lo) * sq, (_prim(hi) - _prim(lo)) * sq
+
+
+def test_render_equals_exact_box_filtered_board() -> None:
+    """A fronto-parallel board without distortion has an exact pixel-area solution: compare every pixel."""
+    size, f, z = (120, 90), 400.0, 400.0  # 10 px squares
+    cam = CameraModel(np.array([[f, 0, 59.3], [0, f, 44.6], [0, 0, 1]]), np.zeros(5), size)
+    cols, rows = 5, 4
+    panels = panels_from_target(planar_target(cols, rows, 10.0), margin_mm=300.0, black_albedo=0.1,
+                                white_albedo=0.9)
+    t = np.array([-18.37, -13.11, z])
+    img, _ = render_radiance(cam, panels, np.eye(3), t, 0.5)
+    u0, v0 = 59.3 + f * t[0] / z, 44.6 + f * t[1] / z  # pixel position of corner (0, 0)
+    lx, sx = _axis_integrals(size[0], u0, 10.0, cols + 1)
+    ly, sy = _axis_integrals(size[1], v0, 10.0, rows + 1)
+    black = 0.5 * (ly[:, None] * lx[None, :] + sy[:, None] * sx[None, :])  # square (-1, -1) is black
+    exact = 0.9 - 0.8 * black
+    err = np.abs(img - exact) / 0.8
+    assert err.max() < 0.012  # X-junction pixels: 32x32 jittered rays
+    straight = (black > 0.02) & (black < 0.98) & (err < 1.0)
+    assert np.median(err[straight]) < 1e-3  # straight edges are integrated exactly
+
+
+def test_colour_convention_and_saddles_at_truth() -> None:
+    """Around every true corner the quadrants alternate, with black on the -x,-y side of corner (0, 0)."""
+    view = planar_view(2, size=(640, 480), cols=6, rows=5, square_px=36.0, tilt_max_deg=40.0,
+                       photometric=CLEAN, background="uniform", distortion="strong")
+    img = view.image.astype(np.float32)
+    ids, px = view.ids(), view.corners()
+    by_id = {tuple(i): p for i, p in zip(ids.tolist(), px)}
+    for (c, r), p in by_id.items():
+        if (c + 1, r) not in by_id or (c, r + 1) not in by_id:
+            continue
+        du = (by_id[(c + 1, r)] - p) * 0.35
+        dv = (by_id[(c, r + 1)] - p) * 0.35
+        quad = {}
+        for su in (-1, 1):
+            for sv in (-1, 1):
+                q = p + su * du + sv * dv
+                quad[(su, sv)] = float(cv2.getRectSubPix(img, (1, 1), (float(q[0]), float(q[1])))[0, 0])
+        dark = min(quad.values())
+        light = max(quad.values())
+        assert light - dark > 100
+        on_diag = [quad[(-1, -1)], quad[(1, 1)]]
+        off_diag = [quad[(1, -1)], quad[(-1, 1)]]
+        if (c + r) % 2 == 0:  # cell (c-1, r-1) is black exactly when c + r is even
+            assert max(on_diag) < min(off_diag), (c, r, quad)
+        else:
+            assert min(on_diag) > max(off_diag), (c, r, quad)
+
+
+def test_rendered_corners_are_point_symmetric_at_truth() -> None:
+    """The centre of point symmetry of each rendered X-junction is the true corner (to ~0.02 px),
+    through perspective, tilt and strong distortion."""
+    view = planar_view(5, size=(640, 480), cols=7, rows=5, square_px=40.0, tilt_max_deg=50.0,
+                       photometric=Photometric(blur_sigma=1.2), background="uniform", distortion="strong")
+    img = view.image.astype(np.float32)
+    ang = np.linspace(0, np.pi, 12, endpoint=False)
+    d = np.array([[r * np.cos(a), r * np.sin(a)] for r in (2.0, 3.0, 4.0) for a in ang])
+    shifts = np.arange(-0.1, 0.1001, 0.01)
+    sx, sy = np.meshgrid(shifts, shifts)
+    offs = np.stack([sx.ravel(), sy.ravel()], 1)
+    for c in view.corners()[::3]:
+        centres = c[None, :] + offs  # candidate centres (S, 2)
+        plus = (centres[:, None, :] + d[None]).astype(np.float32)
+        minus = (centres[:, None, :] - d[None]).astype(np.float32)
+        ip = cv2.remap(img, plus[..., 0], plus[..., 1], cv2.INTER_CUBIC)
+        im = cv2.remap(img, minus[..., 0], minus[..., 1], cv2.INTER_CUBIC)
+        best = offs[np.argmin(((ip - im) ** 2).mean(axis=1))]
+        assert np.abs(best).max() <= 0.03, (c, best)
+
+
+def test_cornersubpix_lands_on_truth() -> None:
+    view = planar_view(4, size=(800, 600), cols=7, rows=5, square_px=50.0, tilt_max_deg=30.0,
+                       photometric=Photometric(blur_sigma=1.0), background="uniform")
+    truth = view.corners().astype(np.float32).reshape(-1, 1, 2)
+    found = cv2.cornerSubPix(view.image, truth.copy(), (7, 7), (-1, -1),
+                             (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-5))
+    err = np.linalg.norm((found - truth).reshape(-1, 2), axis=1)
+    assert np.sqrt(np.mean(err ** 2)) < 0.05
+    assert err.max() < 0.1
+
+
+def test_photometry_keeps_corners() -> None:
+    """Uneven light, gamma and low contrast change intensities, not corner positions."""
+    rng = np.random.default_rng(0)
+    view = planar_view(9, size=(480, 360), cols=5, rows=4, square_px=40.0, photometric=CLEAN, background="uniform")
+    cam_truth = view.corners().astype(np.float32).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-5)
+    radiance = (view.image.astype(np.float32) / 255.0)
+    harsh = apply_photometric(radiance, Photometric(blur_sigma=1.0, gradient=(0.4, -0.3), vignetting=0.4,
+                                                    black_level=60, white_level=140, gamma=1.6), rng)
+    soft = apply_photometric(radiance, Photometric(blur_sigma=1.0), rng)
+    a = cv2.cornerSubPix(harsh, cam_truth.copy(), (6, 6), (-1, -1), crit)
+    b = cv2.cornerSubPix(soft, cam_truth.copy(), (6, 6), (-1, -1), crit)
+    assert np.abs(a - b).max() < 0.05
+    assert harsh.max() < 150 and harsh.min() > 25
+
+
+# --- ground truth ---------------------------------------------------------------------------------------
+
+def test_truth_format_and_projection() -> None:
+    view = planar_view(1, size=(640, 480))
+    t = view.truth
+    assert t["format"] == GT_FORMAT and t["size"] == [640, 480]
+    cam = t["camera"]
+    assert set(cam) >= {"K", "dist", "R_cam_world", "t_cam_world_mm", "image_size"}
+    (b,) = t["boards"]
+    assert b["complete"] and b["n_visible"] == 54 and len(b["ids"]) == 54
+    assert b["ids"][:2] == [[0, 0], [1, 0]]  # row-major
+    xyz = np.array(b["xyz_mm"])
+    np.testing.assert_allclose(xyz[:, :2], np.array(b["ids"]) * 25.0)
+    ref, _ = cv2.projectPoints(xyz.reshape(-1, 1, 3), cv2.Rodrigues(np.array(cam["R_cam_world"]))[0],
+                               np.array(cam["t_cam_world_mm"]), np.array(cam["K"]), np.array(cam["dist"]))
+    np.testing.assert_allclose(np.array(b["corners"]), ref.reshape(-1, 2), atol=1e-9)
+    model = CameraModel(np.array(cam["K"]), np.array(cam["dist"]), tuple(cam["image_size"]))
+    np.testing.assert_allclose(model.project_world(xyz, np.array(cam["R_cam_world"]), np.array(cam["t_cam_world_mm"])),
+                               np.array(b["corners"]), atol=1e-8)
+    json.dumps(t)  # plain JSON values only
+
+
+def test_occluded_and_outside_corners_are_not_listed() -> None:
+    cam = CameraModel.from_fov((320, 240), 60.0)
+    back = planar_target(8, 6, 20.0, "back").boards[0]
+    front = planar_target(2, 2, 15.0, "front").boards[0]
+    panels = [Panel("back", np.array([-70.0, -50.0, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                    board_panel_extent(back), back),
+              Panel("front", np.array([-10.0, -5.0, -100.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                    board_panel_extent(front), front)]
+    R, t = np.eye(3), np.array([0.0, 0.0, 500.0])
+    view = render_view(cam, panels, R, t)
+    names = {b["name"]: b for b in view.truth["boards"]}
+    assert names["front"]["complete"]
+    b = names["back"]
+    assert not b["complete"] and 0 < b["n_visible"] < 48
+    # Every listed back corner is really visible: its ray misses the front panel.
+    fo, (u0, v0, u1, v1) = panels[1].origin_mm, panels[1].extent_mm
+    for p in np.array(b["xyz_mm"]):
+        q = (p + t) * (400.0 / (p + t)[2]) - t  # where the ray meets the front plane z = -100
+        inside = u0 <= q[0] - fo[0] <= u1 and v0 <= q[1] - fo[1] <= v1
+        assert not inside
+    # And a hidden one is missing: the back corner straight behind the front board's centre.
+    listed = {tuple(i) for i in b["ids"]}
+    assert (3, 2) not in listed and (0, 0) in listed
+
+
+def test_back_side_shows_no_pattern() -> None:
+    cam = CameraModel.from_fov((160, 120), 60.0)
+    board = planar_target(4, 3, 20.0, "b").boards[0]
+    panels = panels_from_target(planar_target(4, 3, 20.0, "b"))
+    R, t = look_at(np.array([40.0, 20.0, 400.0]), np.array([40.0, 20.0, 0.0]), up=np.array([0, -1.0, 0]))
+    view = render_view(cam, panels, R, t)  # from +z: behind the board (its normal points away from -z)
+    assert view.truth["boards"] == []
+    assert board.n_corners == 12
+    centre = view.image[50:70, 70:90]
+    assert centre.max() - centre.min() <= 1
+
+
+# --- scenes ---------------------------------------------------------------------------------------------
+
+def test_determinism_with_a_seed() -> None:
+    a = planar_view(3, size=(320, 240), cols=5, rows=4, square_px=25.0)
+    b = planar_view(3, size=(320, 240), cols=5, rows=4, square_px=25.0)
+    c = planar_view(4, size=(320, 240), cols=5, rows=4, square_px=25.0)
+    assert np.array_equal(a.image, b.image) and a.truth == b.truth
+    assert not np.array_equal(a.image, c.image)
+
+
+def test_negatives_have_no_board() -> None:
+    for seed in range(3):
+        view = negative_view(seed, size=(320, 240))
+        assert view.truth["boards"] == [] and view.truth["target"]["boards"] == []
+        assert "checker" in view.truth["distractors"]
+        assert view.image.std() > 10  # clutter, not a blank image
+
+
+@pytest.mark.parametrize("square_px,cols,rows,size", [(8.0, 9, 6, (640, 480)), (150.0, 4, 3, (1280, 800))])
+def test_square_size_in_pixels(square_px, cols, rows, size) -> None:
+    view = planar_view(1, size=size, cols=cols, rows=rows, square_px=square_px, tilt_max_deg=0.0)
+    (b,) = view.truth["boards"]
+    assert b["complete"]
+    c = view.corners()
+    step = np.linalg.norm(c[1] - c[0])
+    assert 0.85 * square_px < step < 1.15 * square_px
+
+
+def test_board_too_big_for_image_is_refused() -> None:
+    with pytest.raises(ValueError, match="does not fit"):
+        planar_view(0, size=(320, 240), cols=9, rows=6, square_px=60.0)
+
+
+def test_hard_and_multi_views() -> None:
+    hard = hard_view(2, size=(480, 360))
+    assert hard.truth["category"] == "hard" and hard.truth["boards"][0]["complete"]
+    multi = multi_view(3, size=(800, 600), n_boards=3, square_px=(12.0, 22.0))
+    boards = multi.truth["boards"]
+    assert len(boards) >= 2 and all(b["complete"] for b in boards)
+    grids = {(b["cols"], b["rows"]) for b in boards}
+    assert len(grids) == len(boards)  # different sizes
+
+
+def test_box_stereo_pair_truth_is_consistent() -> None:
+    pair = box_stereo(1, size=(800, 600), photometric="clean", supersampling=6)
+    assert [b["name"] for b in pair.left.truth["boards"]] == ["top", "side", "front"]
+    assert all(b["complete"] for v in (pair.left, pair.right) for b in v.truth["boards"])
+    p = pair.pair
+    R_l, t_l = np.array(p["left"]["R_cam_world"]), np.array(p["left"]["t_cam_world_mm"])
+    R_r, t_r = np.array(p["right"]["R_cam_world"]), np.array(p["right"]["t_cam_world_mm"])
+    R_rl, T_rl = np.array(p["R_right_left"]), np.array(p["T_right_left_mm"])
+    np.testing.assert_allclose(R_rl @ R_l, R_r, atol=1e-12)
+    np.testing.assert_allclose(R_rl @ t_l + T_rl, t_r, atol=1e-9)
+    assert 65 < p["baseline_mm"] < 75 and 240 < p["distance_mm"] < 360
+    # Triangulating the two views' truth gives back the box corners.
+    cams = [CameraModel(np.array(p[s]["K"]), np.array(p[s]["dist"]), tuple(p[s]["image_size"])) for s in ("left", "right")]
+    bl, br = pair.left.truth["boards"][0], pair.right.truth["boards"][0]
+    rays = [cams[k].pixel_to_ray(np.array(b["corners"]))[:, :2].T for k, b in enumerate((bl, br))]
+    X = cv2.triangulatePoints(np.hstack([np.eye(3), np.zeros((3, 1))]), np.hstack([R_rl, T_rl[:, None]]),
+                              rays[0], rays[1])
+    X = (X[:3] / X[3]).T
+    world = np.array(bl["xyz_mm"]) @ R_l.T + t_l
+    assert np.abs(X - world).max() < 1e-6
+
+
+def test_robot_sequence_truth() -> None:
+    frames = list(robot_sequence(2, 2, size=(640, 400), supersampling=4))
+    assert [f.index for f in frames] == [0, 1] and frames[1].stamp_ns == round(1e9 / 30)
+    tgt = robot_target()
+    for fr in frames:
+        names = {b["name"] for b in fr.left.truth["boards"]}
+        assert names == {"front", "left", "top"}
+        cam = fr.left.truth["camera"]
+        R_cw, t_cw = np.array(cam["R_cam_world"]), np.array(cam["t_cam_world_mm"])
+        for b in fr.left.truth["boards"]:
+            robot_pts = tgt.board(b["name"]).target_points_mm(np.array(b["ids"]))
+            via_robot = robot_pts @ fr.R_rig_robot.T + fr.t_rig_robot_mm
+            via_world = np.array(b["xyz_mm"]) @ R_cw.T + t_cw
+            np.testing.assert_allclose(via_robot, via_world, atol=1e-9)
+        assert 800 < np.linalg.norm(fr.t_rig_robot_mm) < 1300
+    # Smooth motion: a few mm per frame at 30 fps.
+    assert np.linalg.norm(frames[1].t_rig_robot_mm - frames[0].t_rig_robot_mm) < 20
+
+
+def test_random_camera_levels() -> None:
+    rng = np.random.default_rng(0)
+    assert np.all(random_camera(rng, distortion="none").dist == 0)
+    assert random_camera(rng, distortion="strong").dist[0] < -0.1
+    with pytest.raises(ValueError):
+        random_camera(rng, distortion="extreme")
+
+
+# --- writer and command ---------------------------------------------------------------------------------
+
+def test_render_command_writes_and_refuses_to_clobber(tmp_path, capsys) -> None:
+    out = tmp_path / "set"
+    assert cli.main(["render", "planar", "--out", str(out), "--count", "2", "--seed", "4", "--size", "320x240",
+                     "--board", "5x4", "--square-px", "20"]) == 0
+    files = sorted(p.name for p in out.iterdir())
+    assert files == ["planar_000.json", "planar_000.png", "planar_001.json", "planar_001.png"]
+    doc = json.loads((out / "planar_000.json").read_text())
+    assert doc["format"] == GT_FORMAT and doc["image"] == "planar_000.png"
+    img = cv2.imread(str(out / "planar_000.png"), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (240, 320) and img.dtype == np.uint8
+    before = (out / "planar_000.png").read_bytes()
+    assert cli.main(["render", "planar", "--out", str(out), "--size", "320x240", "--seed", "9"]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert (out / "planar_000.png").read_bytes() == before
+    assert cli.main(["render", "planar", "--out", str(out), "--size", "320x240", "--seed", "9", "--force"]) == 0
+    assert (out / "planar_000.png").read_bytes() != before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary files left
+
+
+def test_render_command_box_and_robot(tmp_path) -> None:
+    assert cli.main(["render", "box", "--out", str(tmp_path / "box"), "--size", "640x480",
+                     "--photometric", "clean"]) == 0
+    pair = json.loads((tmp_path / "box" / "box_000_pair.json").read_text())
+    assert pair["images"] == {"left": "box_000_L.png", "right": "box_000_R.png"}
+    assert json.loads((tmp_path / "box" / "box_000_L.json").read_text())["pair"] == "box_000_pair.json"
+    assert cli.main(["render", "robot", "--out", str(tmp_path / "robot"), "--count", "2", "--size", "320x200"]) == 0
+    truth = json.loads((tmp_path / "robot" / "truth.json").read_text())
+    assert len(truth["frames"]) == 2 and (tmp_path / "robot" / "right" / "000001.png").is_file()
+    q = np.array(truth["frames"][0]["q_rig_robot_xyzw"])
+    assert abs(np.linalg.norm(q) - 1) < 1e-9 and q[3] >= 0
+
+
+def test_render_command_bad_options(tmp_path, capsys) -> None:
+    assert cli.main(["render", "planar", "--out", str(tmp_path), "--size", "320x240", "--square-px", "90"]) == 2
+    assert "does not fit" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["render", "planar", "--out", str(tmp_path), "--size", "big"])
