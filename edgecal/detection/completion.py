@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates
+from edgecal.detection.probe import EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M_SIGN_FRAC, probe_candidates
 from edgecal.detection.subpixel import refine_corners
 
 
@@ -50,9 +50,84 @@ def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, 
     return p, np.minimum(du, dv)
 
 
+def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
+                             outward: tuple[int, int], smooth: np.ndarray, min_contrast: float) -> bool:
+    """Whether the squares just outside a grid line alternate black/white, as they must at a row of corners.
+
+    A board's outermost squares meet its white margin in points the probe can take for X-corners (the
+    margin is white on both sides, the background beyond may be dark). Such a line is geometrically a
+    perfect grid row; what gives it away is the uniform margin beyond it. Squares outside the image are
+    not judged (True).
+    """
+    du, dv = outward
+    along = (1 - abs(du), 1 - abs(dv))
+    ordered = sorted(line, key=lambda l: l[0] * along[0] + l[1] * along[1])
+    # Each line point stepped one square outwards, extrapolated along its own grid line (quadratic when two
+    # inner points are known: fisheye lenses bend the lines too much for one homography to reach outside).
+    outer = []
+    for u, v in ordered:
+        p0 = grid.get((u, v))
+        p1 = grid.get((u - du, v - dv))
+        p2 = grid.get((u - 2 * du, v - 2 * dv))
+        if p0 is None or p1 is None:
+            outer.append(None)
+        elif p2 is None:
+            outer.append(2.0 * p0 - p1)
+        else:
+            outer.append(3.0 * p0 - 3.0 * p1 + p2)
+    cells = []
+    for k in range(len(ordered) - 1):
+        a0, a1 = grid.get(ordered[k]), grid.get(ordered[k + 1])
+        b0, b1 = outer[k], outer[k + 1]
+        if a0 is None or a1 is None or b0 is None or b1 is None:
+            continue
+        cells.append(0.25 * (a0 + a1 + b0 + b1))
+    if len(cells) < 2:
+        return True
+    xy = np.asarray(cells)
+    hh, ww = smooth.shape
+    vals = []
+    for x, y in xy:
+        if not (1 <= x < ww - 2 and 1 <= y < hh - 2):
+            return True
+        xi, yi = int(round(x)), int(round(y))
+        vals.append(float(smooth[yi - 1:yi + 2, xi - 1:xi + 2].mean()))
+    diffs = np.diff(vals)
+    if len(diffs) == 0:
+        return True
+    alternating = np.sum(diffs[1:] * diffs[:-1] < 0) if len(diffs) > 1 else 1
+    strong = np.abs(diffs) >= 0.5 * min_contrast
+    return bool(strong.mean() >= 0.7 and (len(diffs) == 1 or alternating >= 0.7 * (len(diffs) - 1)))
+
+
+def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray,
+                     min_contrast: float) -> dict[tuple[int, int], np.ndarray]:
+    """Drop outer rows/columns whose outside squares do not alternate (see squares_beyond_alternate)."""
+    grid = dict(grid)
+    changed = True
+    while changed and len(grid) >= 4:
+        changed = False
+        us = [u for u, _ in grid]
+        vs = [v for _, v in grid]
+        for axis, value, outward in ((0, min(us), (-1, 0)), (0, max(us), (1, 0)),
+                                     (1, min(vs), (0, -1)), (1, max(vs), (0, 1))):
+            line = [k for k in grid if k[axis] == value]
+            # A lone point out on a line of its own is never trusted; longer lines must have squares beyond.
+            if len(line) < 2 or not squares_beyond_alternate(grid, line, outward, smooth, min_contrast):
+                for k in line:
+                    del grid[k]
+                changed = True
+                break
+    return grid
+
+
 def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray, spacing: np.ndarray,
-            params: DetectorParams) -> tuple[np.ndarray, np.ndarray]:
-    """Refine predicted corners and keep those the probe confirms near their prediction."""
+            params: DetectorParams, inside_grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Refine predicted corners and keep those the probe confirms near their prediction.
+
+    Holes inside a grid (``inside_grid``) are pinned down by neighbours on all sides, so the probe only has
+    to see a corner there (thresholds relaxed further); new rows outside must pass the probe properly.
+    """
     h, w = smooth.shape
     inside = ((preds[:, 0] > 2) & (preds[:, 1] > 2) & (preds[:, 0] < w - 3) & (preds[:, 1] < h - 3))
     refined = preds.copy()
@@ -60,12 +135,14 @@ def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarra
         refined[inside] = refine_corners(smooth, preds[inside], spacing[inside])
     radii = np.clip(params.probe_radius_per_spacing * spacing, params.probe_radius_min_px,
                     params.probe_radius_max_px)
-    ok, _dirs, _meas = probe_candidates(
+    ok, _dirs, meas = probe_candidates(
         gx, gy, smooth, np.ascontiguousarray(refined), np.ascontiguousarray(radii), params.probe_angles,
         params.probe_inner_radius_px, EDGE_ACROSS_RAY, math.radians(params.angle_diff_max_deg),
         params.sign_fraction, params.min_contrast * 0.5, params.min_peak_ratio * 0.8)
+    hole_ok = ((meas[:, M_ANGLE_ERR] < math.radians(1.5 * params.angle_diff_max_deg))
+               & (meas[:, M_SIGN_FRAC] >= 0.6) & (meas[:, M_CONTRAST] >= 0.5 * params.min_contrast))
     near = np.linalg.norm(refined - preds, axis=1) < 0.25 * spacing
-    return refined, ok & near & inside
+    return refined, (ok | (inside_grid & hole_ok)) & near & inside
 
 
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,
@@ -90,13 +167,13 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         # Sides: a whole new row or column from the three nearest ones.
         sides = []
         if u1 - u0 + 1 < max_dim:
-            sides += [([(u0 - 1, v) for v in range(v0, v1 + 1)], (u0, u0 + 2, v0, v1)),
-                      ([(u1 + 1, v) for v in range(v0, v1 + 1)], (u1 - 2, u1, v0, v1))]
+            sides += [([(u0 - 1, v) for v in range(v0, v1 + 1)], (u0, u0 + 2, v0, v1), (-1, 0)),
+                      ([(u1 + 1, v) for v in range(v0, v1 + 1)], (u1 - 2, u1, v0, v1), (1, 0))]
         if v1 - v0 + 1 < max_dim:
-            sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (u0, u1, v0, v0 + 2)),
-                      ([(u, v1 + 1) for u in range(u0, u1 + 1)], (u0, u1, v1 - 2, v1))]
-        groups = [(len(keys), None)]
-        for labels, box in sides:
+            sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (u0, u1, v0, v0 + 2), (0, -1)),
+                      ([(u, v1 + 1) for u in range(u0, u1 + 1)], (u0, u1, v1 - 2, v1), (0, 1))]
+        groups: list[tuple[int, list | None, tuple[int, int] | None]] = [(len(keys), None, None)]
+        for labels, box, outward in sides:
             h = _local_homography(grid, *box)
             if h is None:
                 continue
@@ -104,20 +181,29 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
             preds.extend(p)
             keys.extend(labels)
             spac.extend(sp)
-            groups.append((len(keys), labels))
+            groups.append((len(keys), labels, outward))
         if not keys:
             break
-        refined, good = _verify(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params)
+        n_holes = groups[0][0]
+        refined, good = _verify(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
+                                np.arange(len(keys)) < n_holes)
         start = 0
-        for end, labels in groups:
+        for end, labels, outward in groups:
             sel = range(start, end)
-            # A side line is taken only when most of it is confirmed (a board's margin confirms nothing).
-            if labels is None or sum(good[i] for i in sel) >= max(2, 0.6 * len(labels)):
-                for i in sel:
-                    if good[i]:
-                        grid[keys[i]] = refined[i]
-                        added = True
             start = end
+            if labels is not None:
+                # A side line is taken only when most of it is confirmed and squares lie beyond it.
+                if sum(good[i] for i in sel) < max(2, 0.6 * len(labels)):
+                    continue
+                trial = dict(grid)
+                trial.update({keys[i]: refined[i] for i in sel if good[i]})
+                line = [keys[i] for i in sel if good[i]]
+                if not squares_beyond_alternate(trial, line, outward, smooth, params.min_contrast):
+                    continue
+            for i in sel:
+                if good[i]:
+                    grid[keys[i]] = refined[i]
+                    added = True
         if not added:
             break
     return grid

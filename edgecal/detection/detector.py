@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from edgecal.detection.candidates import (estimate_noise_sigma, min_eigen_candidates, prepare_image,
                                           smoothing_sigma, snap_to_saddle)
-from edgecal.detection.completion import complete_grid
+from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids
 from edgecal.detection.params import DetectorParams
@@ -183,7 +183,8 @@ def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> Detect
         if len(members) < p.min_grid_corners:
             continue
         grid = {(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members}
-        if not _is_full_board(grid, by_size):
+        grid = trim_false_edges(grid, smooth, p.min_contrast)
+        if len(grid) >= p.min_grid_corners and not _is_full_board(grid, by_size):
             grid = complete_grid(grid, smooth, gx, gy, max_dim, p)
         grids.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.
