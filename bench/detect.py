@@ -33,6 +33,7 @@ import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
+import zlib  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Callable  # noqa: E402
@@ -108,15 +109,20 @@ class BenchSet:
     timing_only: bool = False
 
 
+def _target_from_boards(boards: list[dict], name: str) -> Target | None:
+    """A Target from the ``target.boards`` list of a ground-truth document (None when it is empty)."""
+    out = []
+    for i, b in enumerate(boards):
+        out.append(Board(str(b.get("name", f"board{i}")), int(b["cols"]), int(b["rows"]),
+                         float(b.get("square_mm", 1.0)),
+                         np.asarray(b.get("origin_mm", [0, 0, 0]), dtype=float),
+                         np.asarray(b.get("x_axis", [1, 0, 0]), dtype=float),
+                         np.asarray(b.get("y_axis", [0, 1, 0]), dtype=float)))
+    return Target(name, tuple(out), name) if out else None
+
+
 def _target_from_truth_json(path: Path) -> Target | None:
-    boards = []
-    for i, b in enumerate(truth_targets(path)):
-        boards.append(Board(str(b.get("name", f"board{i}")), int(b["cols"]), int(b["rows"]),
-                            float(b.get("square_mm", 1.0)),
-                            np.asarray(b.get("origin_mm", [0, 0, 0]), dtype=float),
-                            np.asarray(b.get("x_axis", [1, 0, 0]), dtype=float),
-                            np.asarray(b.get("y_axis", [0, 1, 0]), dtype=float)))
-    return Target(path.stem, tuple(boards), str(path)) if boards else None
+    return _target_from_boards(truth_targets(path), path.stem)
 
 
 def synthetic_set(root: Path, name: str) -> BenchSet | None:
@@ -177,13 +183,42 @@ def timing_set(sets: list[BenchSet], size: tuple[int, int] = (1280, 800)) -> Ben
                     timing_only=True)
 
 
-def rendered_sets() -> list[BenchSet]:
-    """Sets rendered on the fly by edgecal.synth (a scale sweep), when the renderer is available."""
+#: Scale sweep: nominal square size (px) -> board (inner corners) that still fits a 1280x800 frame.
+SWEEP = {8: (9, 6), 12: (9, 6), 20: (9, 6), 35: (9, 6), 60: (9, 6), 100: (6, 4), 150: (4, 3)}
+RENDER_SIZE = (1280, 800)
+
+
+def rendered_sets(wanted: Callable[[str], bool], per_set: int = 4, seed: int = 2026) -> list[BenchSet]:
+    """Sets rendered on the fly by edgecal.synth, 1280x800: a scale sweep and clean renders.
+
+    ``rendered/scale_NNNpx``: one board, squares of NNN px nominal (the board shrinks for the big
+    squares), tilt up to 40 degrees, typical camera photometry and clutter. ``rendered/clean``: sharp,
+    faintly noisy renders (the corner RMS target). Deterministic seeds; only wanted sets are rendered.
+    """
     try:
-        from edgecal.synth import scenes  # noqa: F401
-    except ImportError:
+        from edgecal.evaluate import ground_truth_from_mapping
+        from edgecal.synth.scenes import planar_view
+    except ImportError as exc:
+        print(f"# rendered sets skipped: edgecal.synth not importable ({exc})", file=sys.stderr)
         return []
-    return []
+    specs = [(f"rendered/scale_{sq:03d}px", sq, board, "normal", 40.0) for sq, board in SWEEP.items()]
+    specs.append(("rendered/clean", (15.0, 45.0), (9, 6), "clean", 40.0))
+    sets = []
+    for name, square_px, (cols, rows), phot, tilt in specs:
+        if not wanted(name):
+            continue
+        t0 = time.perf_counter()
+        items = []
+        for k in range(per_set):
+            view = planar_view((seed, zlib.crc32(name.encode()) % 10_000, k), size=RENDER_SIZE, cols=cols, rows=rows,
+                               square_px=square_px, tilt_max_deg=tilt, photometric=phot)
+            truth = ground_truth_from_mapping(view.truth, f"{name}#{k}")
+            target = _target_from_boards(view.truth["target"]["boards"], f"{cols}x{rows}")
+            items.append(Item(f"{name.split('/')[1]}_{k}", view.image, target, truth))
+        what = f"{square_px} px squares" if isinstance(square_px, int) else "15-45 px squares"
+        sets.append(BenchSet(name, items, f"{cols}x{rows}, {what}, {phot} photometry, rendered in "
+                                          f"{time.perf_counter() - t0:.1f} s"))
+    return sets
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -470,6 +505,12 @@ def format_table(bset: BenchSet, results: dict[str, SetResult]) -> str:
     else:
         lines.append(f"{'detector':<13} {'found':>9} {'rate':>6} {'false':>6} {'part':>4} {'reported':>8} "
                      f"{'rms px':>7} {'rms/edg':>8} {'median ms':>10} {'p90 ms':>9} {'ms/edgecal':>11}")
+    if bset.timing_only and base and "opencv_sb" in sums and "opencv" in sums:
+        sb = sums["opencv_sb"]["median_ms"] / base["median_ms"]
+        cl = sums["opencv"]["median_ms"] / base["median_ms"]
+        lines.insert(1, f"speed target (issue 2): findChessboardCornersSB / edgecal >= 5: {sb:.2f} "
+                        f"({'met' if sb >= 5 else 'NOT met'}); findChessboardCorners / edgecal > 1: "
+                        f"{cl:.2f} ({'met' if cl > 1 else 'NOT met'})")
     for name, s in sums.items():
         if s["images"] == 0:
             lines.append(f"{name:<13} (not run: needs a board size)")
@@ -547,6 +588,7 @@ def result_json(bset: BenchSet, results: dict[str, SetResult]) -> dict:
 def select_sets(root: Path, patterns: list[str]) -> list[BenchSet]:
     """Load the sets whose names match any of ``patterns`` (fnmatch; a bare name matches its tail)."""
     names = [f"synthetic/{n}" for n in SYNTHETIC_SETS] + [f"real/{n}" for n in REAL_SETS]
+    # rendered/* sets are made by edgecal.synth and need no shared data
 
     def wanted(name: str) -> bool:
         return any(fnmatch.fnmatch(name, p) or fnmatch.fnmatch(name.split("/", 1)[1], p) for p in patterns)
@@ -561,9 +603,7 @@ def select_sets(root: Path, patterns: list[str]) -> list[BenchSet]:
             print(f"# {name}: absent, skipped", file=sys.stderr)
             continue
         sets.append(s)
-    for s in rendered_sets():
-        if wanted(s.name):
-            sets.append(s)
+    sets.extend(rendered_sets(wanted))
     if any(fnmatch.fnmatch("timing/1280x800", p) or p == "timing" for p in patterns):
         # the frames come from the synthetic sets; ones not selected are loaded for this set alone
         loaded = {x.name for x in sets}
