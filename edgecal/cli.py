@@ -18,6 +18,7 @@ from edgecal.errors import EdgecalError
 # Order here is the order in `edgecal --help`.
 COMMAND_MODULES = (
     "edgecal.commands.detect",
+    "edgecal.commands.run",
     "edgecal.commands.listen",
     "edgecal.commands.calibrate",
     "edgecal.commands.render",

@@ -1,0 +1,173 @@
+"""The live loop's config file (configs/robot.yaml), validated field by field before any device opens.
+
+::
+
+    source:                      # a drivers source section (see edgecal/drivers/spec.py)
+      uri: replay:out/demo/robot?loop=true
+    rig: out/demo/rig.yaml       # stereo calibration (cv2.FileStorage, T in metres)
+    target: targets/robot-3boards.yaml
+    detector: null               # optional detector thresholds file (configs/detector.yaml format)
+    pose:    {triangulation: optimal, covariance_scale: max, corner_noise_px: 0.1,
+              min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
+    publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4}
+    loop:    {latest_frame_wins: true, status_period_s: 1.0, camera_lost_after_s: 2.0,
+              reconnect_min_s: 0.5, reconnect_max_s: 10.0, stop_at_end: true}
+
+Relative paths are taken from the current directory; a target or detector file that is not found
+there is looked up among the files shipped in configs/ (e.g. ``targets/robot-3boards.yaml``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
+from edgecal.detection.params import DetectorParams, load_params
+from edgecal.drivers.spec import SourceSpec, spec_from_config
+from edgecal.errors import ConfigError, EdgecalError
+from edgecal.pose.types import PoseSettings, QualityBounds, StereoCameras
+from edgecal.publish.publisher import DEFAULT_ENDPOINT, check_endpoint
+from edgecal.targets import Target, load_target
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """Timing of the loop itself."""
+
+    latest_frame_wins: bool = True     # read through a latest-frame-wins wrapper (latency never grows)
+    status_period_s: float = 1.0       # log + status message + watchdog period
+    camera_lost_after_s: float = 2.0   # no frame for this long: close the camera and reopen it
+    reconnect_min_s: float = 0.5       # first wait before reopening; doubles up to reconnect_max_s
+    reconnect_max_s: float = 10.0
+    stop_at_end: bool = True           # a finite source (a replay) that ends stops the loop (exit 0)
+
+
+@dataclass(frozen=True)
+class PublishSettings:
+    """Where and how poses are published."""
+
+    endpoint: str = DEFAULT_ENDPOINT
+    allow_remote: bool = False
+    hwm: int = 4
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    """Everything ``edgecal run`` needs, loaded and checked."""
+
+    path: str
+    source: SourceSpec
+    cameras: StereoCameras
+    target: Target
+    detector: DetectorParams | None
+    pose: PoseSettings
+    publish: PublishSettings
+    loop: LoopSettings
+    rig_path: str
+
+
+def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
+    name = r.string(key)
+    p = Path(name).expanduser()
+    if p.is_file():
+        return p
+    if packaged and not p.is_absolute():
+        q = packaged_config_path(name)
+        if q.is_file():
+            return q
+    raise r.fail(key, f"names a file that does not exist: {name}")
+
+
+def _read_pose(r: ConfigReader) -> PoseSettings:
+    r.reject_unknown(("triangulation", "covariance_scale", "corner_noise_px", "min_corners", "max_rms_px",
+                      "max_position_std_mm", "max_rotation_std_deg"))
+    d, b = PoseSettings(), QualityBounds()
+    bounds = QualityBounds(
+        min_corners=r.integer("min_corners", b.min_corners, minimum=3),
+        max_rms_px=r.number("max_rms_px", b.max_rms_px, positive=True),
+        max_position_std_mm=r.number("max_position_std_mm", b.max_position_std_mm, positive=True),
+        max_rotation_std_deg=r.number("max_rotation_std_deg", b.max_rotation_std_deg, positive=True))
+    return PoseSettings(
+        triangulation=r.string("triangulation", d.triangulation, choices=("optimal", "linear")),
+        covariance_scale=r.string("covariance_scale", d.covariance_scale, choices=("max", "residual", "noise")),
+        corner_noise_px=r.number("corner_noise_px", d.corner_noise_px, positive=True),
+        bounds=bounds)
+
+
+def _read_publish(r: ConfigReader) -> PublishSettings:
+    r.reject_unknown(("endpoint", "allow_remote", "hwm"))
+    endpoint = r.string("endpoint", DEFAULT_ENDPOINT)
+    allow = r.boolean("allow_remote", False)
+    try:
+        check_endpoint(endpoint, allow)
+    except ConfigError as exc:
+        raise r.fail("endpoint", str(exc).split(": ", 1)[-1]) from None
+    return PublishSettings(endpoint, allow, r.integer("hwm", 4, minimum=1, maximum=1000))
+
+
+def _read_loop(r: ConfigReader) -> LoopSettings:
+    r.reject_unknown(("latest_frame_wins", "status_period_s", "camera_lost_after_s", "reconnect_min_s",
+                      "reconnect_max_s", "stop_at_end"))
+    d = LoopSettings()
+    lo = r.number("reconnect_min_s", d.reconnect_min_s, positive=True, maximum=3600)
+    hi = r.number("reconnect_max_s", d.reconnect_max_s, positive=True, maximum=3600)
+    if hi < lo:
+        raise r.fail("reconnect_max_s", f"must be at least reconnect_min_s ({lo:g})")
+    return LoopSettings(
+        latest_frame_wins=r.boolean("latest_frame_wins", d.latest_frame_wins),
+        status_period_s=r.number("status_period_s", d.status_period_s, minimum=0.05, maximum=60),
+        camera_lost_after_s=r.number("camera_lost_after_s", d.camera_lost_after_s, minimum=0.1, maximum=600),
+        reconnect_min_s=lo, reconnect_max_s=hi,
+        stop_at_end=r.boolean("stop_at_end", d.stop_at_end))
+
+
+def load_stereo_cameras(path: Path, field: str, source: str) -> StereoCameras:
+    """The stereo pair of a rig.yaml; a mono or unreadable file is a ConfigError naming ``field``."""
+    from edgecal.calibration.io import load_rig
+
+    try:
+        rig = load_rig(path)
+    except EdgecalError as exc:
+        raise ConfigError(f"{source}: field '{field}': {exc}") from None
+    if not rig.is_stereo:
+        raise ConfigError(f"{source}: field '{field}': {path} holds one camera; the live loop needs a stereo rig")
+    left, right = rig.cameras
+    assert rig.rotation is not None and rig.translation_m is not None
+    return StereoCameras(np.asarray(left.camera_matrix, float), np.ravel(left.dist_coeffs).astype(float),
+                         np.asarray(right.camera_matrix, float), np.ravel(right.dist_coeffs).astype(float),
+                         np.asarray(rig.rotation, float), np.ravel(rig.translation_m).astype(float),
+                         tuple(rig.image_size))
+
+
+LIVE_FIELDS = ("source", "rig", "target", "detector", "pose", "publish", "loop")
+
+
+def load_live_config(path: str | Path) -> LiveConfig:
+    """Load and validate a live-loop config; every problem is a ConfigError naming the field.
+
+    Opens no device: the source section is only parsed; the rig, target and detector files are read.
+    """
+    src = str(path)
+    r = ConfigReader(load_yaml_mapping(path), src)
+    r.reject_unknown(LIVE_FIELDS)
+    source = spec_from_config(r.section("source"))
+    rig_path = _resolve(r, "rig", packaged=False)
+    cameras = load_stereo_cameras(rig_path, "rig", src)
+    target_path = _resolve(r, "target", packaged=True)
+    try:
+        target = load_target(target_path)
+    except ConfigError as exc:
+        raise ConfigError(f"{src}: field 'target': {exc}") from None
+    detector = None
+    if r.has("detector"):
+        try:
+            detector = load_params(_resolve(r, "detector", packaged=True))
+        except ConfigError as exc:
+            raise ConfigError(f"{src}: field 'detector': {exc}") from None
+    pose = _read_pose(r.section("pose", {}))
+    publish = _read_publish(r.section("publish", {}))
+    loop = _read_loop(r.section("loop", {}))
+    return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path))

@@ -1,0 +1,296 @@
+"""The live loop: stereo source -> detect left and right in parallel -> pose -> publish.
+
+State lives here (the camera, the socket, the counters); the work per frame is the pure functions of
+edgecal.detection and edgecal.pose. The loop runs in one thread and is steered from outside only
+through :meth:`LiveLoop.request_stop` and :meth:`LiveLoop.request_reload` (signal handlers call them),
+so a signal never interrupts a frame half-way.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable
+
+import numpy as np
+
+import edgecal
+from edgecal.drivers.base import Source, StereoFrame, StereoSource
+from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
+from edgecal.drivers.spec import SourceSpec
+from edgecal.errors import DeviceError, EdgecalError, InputError
+from edgecal.pose import Pose, estimate_pose
+from edgecal.publish import PosePublisher, pose_message, status_message
+from edgecal.stream.config import LiveConfig, load_live_config
+from edgecal.stream.notify import SystemdNotifier
+from edgecal.stream.stats import LoopStats
+
+log = logging.getLogger("edgecal.stream")
+
+READ_SLICE_S = 0.2          # longest blocking read: a stop request is served within about this
+CLOCK_PLAUSIBLE_NS = 60 * 10**9   # a capture stamp further than this from monotonic now is on another clock
+
+
+def default_source_factory(spec: SourceSpec) -> Source:
+    """The drivers' ``open_source`` (imported late so a robot without a camera library still replays)."""
+    from edgecal.drivers.factory import open_source
+    return open_source(spec)
+
+
+def capture_time_ns(frame: StereoFrame, now_ns: int) -> tuple[int, str]:
+    """The host-monotonic time the pair was captured, and what it is based on.
+
+    Device stamps mapped to CLOCK_MONOTONIC are used as they are ("capture"); a replay's recorded
+    stamps (or an unmapped device clock) are on another time base, so the time the frame reached
+    edgecal is used instead ("receive").
+    """
+    stamp = frame.stamp_ns
+    if 0 <= now_ns - stamp < CLOCK_PLAUSIBLE_NS:
+        return stamp, "capture"
+    return min(frame.left.recv_ns, frame.right.recv_ns), "receive"
+
+
+def check_image(image: object, size: tuple[int, int], side: str) -> str | None:
+    """Why ``image`` cannot be used (None if it can): not an array, wrong type, or not the rig's size."""
+    if not isinstance(image, np.ndarray):
+        return f"{side} image is {type(image).__name__}, not an array"
+    if image.dtype not in (np.uint8, np.uint16) or image.ndim not in (2, 3) or image.size == 0:
+        return f"{side} image has dtype {image.dtype} and shape {image.shape}"
+    w, h = size
+    if w and h and (image.shape[1], image.shape[0]) != (w, h):
+        return f"{side} image is {image.shape[1]}x{image.shape[0]}, the rig was calibrated at {w}x{h}"
+    return None
+
+
+class LiveLoop:
+    """One live pose stream. ``run()`` blocks until a stop request (or the end of a finite source)."""
+
+    def __init__(self, config: LiveConfig,
+                 source_factory: Callable[[SourceSpec], Source] = default_source_factory,
+                 notifier: SystemdNotifier | None = None) -> None:
+        self.config = config
+        self.source_factory = source_factory
+        self.notifier = notifier or SystemdNotifier()
+        self.stats = LoopStats(time.monotonic_ns())
+        self.state = "starting"
+        self._stop = threading.Event()
+        self._reload = threading.Event()
+        self._source: Source | None = None
+        self._publisher: PosePublisher | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._ready_sent = False
+        self._last_frame_ns = 0
+        self._backoff_s = config.loop.reconnect_min_s
+        self._next_open_ns = 0
+        self._next_status_ns = 0
+        self._last_message = ""
+        self._last_error_log_ns = 0
+
+    # -- requests from outside (signal handlers, other threads) -------------------------------------
+
+    def request_stop(self) -> None:
+        """Ask the loop to stop after the current frame (safe from a signal handler)."""
+        self._stop.set()
+
+    def request_reload(self) -> None:
+        """Ask the loop to reload its config file before the next frame (safe from a signal handler)."""
+        self._reload.set()
+
+    # -- the loop ----------------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Run until stopped; returns the exit code (0 after a stop request or the end of a replay)."""
+        self._publisher = PosePublisher(self.config.publish.endpoint, self.config.publish.hwm)
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
+        log.info("publishing on %s; source %s", self.config.publish.endpoint, self.config.source.uri)
+        try:
+            while not self._stop.is_set():
+                if self._reload.is_set():
+                    self._reload.clear()
+                    self._do_reload()
+                now = time.monotonic_ns()
+                if now >= self._next_status_ns:
+                    self._report(now)
+                if self._source is None:
+                    self._try_open(now)
+                    continue
+                if not self._step():
+                    break
+            return 0
+        finally:
+            self.state = "stopping"
+            self.notifier.stopping()
+            self._close_source()
+            if self._publisher is not None:
+                self._report(time.monotonic_ns())
+                self._publisher.close()
+            self._pool.shutdown(wait=True)
+            log.info("stopped after %d frames", self.stats.frames)
+
+    def _try_open(self, now: int) -> None:
+        """Open the source when its back-off has passed; otherwise wait (a slice at a time)."""
+        if now < self._next_open_ns:
+            self._stop.wait(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
+            return
+        spec = self.config.source
+        source = None
+        try:
+            source = self.source_factory(spec)
+            if self.config.loop.latest_frame_wins and not isinstance(source, LatestFrameSource):
+                wrapper = LatestStereoFrameSource if isinstance(source, StereoSource) else LatestFrameSource
+                source = wrapper(source, spec.settings.timeout_s)
+            source.open()
+        except DeviceError as exc:
+            if source is not None:
+                source.close()
+            self._camera_lost(f"cannot open {spec.uri}: {exc}")
+            return
+        self._source = source
+        self._last_frame_ns = time.monotonic_ns()
+        if self.state == "camera-lost":
+            log.info("camera %s reopened", spec.uri)
+            self.stats.reconnects += 1
+        self.state = "running" if self._ready_sent else "starting"
+        self._last_message = ""
+
+    def _camera_lost(self, why: str) -> None:
+        self._close_source()
+        if self.state != "camera-lost":
+            log.warning("camera lost: %s; reopening with back-off", why)
+        self.state = "camera-lost"
+        self._last_message = why
+        self._next_open_ns = time.monotonic_ns() + int(self._backoff_s * 1e9)
+        self._backoff_s = min(self._backoff_s * 2, self.config.loop.reconnect_max_s)
+
+    def _close_source(self) -> None:
+        if self._source is not None:
+            src, self._source = self._source, None
+            try:
+                self.stats.source_dropped(src.dropped)
+            finally:
+                self.stats.source_closed()
+                src.close()
+
+    def _step(self) -> bool:
+        """Read and process one frame; False when a finite source has ended and the loop should stop."""
+        assert self._source is not None
+        t_read = time.monotonic_ns()
+        try:
+            frame = self._source.read(READ_SLICE_S)
+        except InputError as exc:                # an unreadable frame of a replay: skip it
+            self.stats.corrupt_frames += 1
+            self._rate_limited_error(f"unreadable frame skipped: {exc}")
+            return True
+        except DeviceError as exc:
+            silent_s = (time.monotonic_ns() - self._last_frame_ns) / 1e9
+            if silent_s > self.config.loop.camera_lost_after_s:
+                self._camera_lost(str(exc))
+            elif time.monotonic_ns() - t_read < 10**6:
+                self._stop.wait(0.02)            # the error came at once (a dead capture thread): don't spin
+            return True
+        if frame is None:
+            if self.config.loop.stop_at_end:
+                log.info("source %s ended", self.config.source.uri)
+                return False
+            self._camera_lost("the source ended")
+            return True
+        if not isinstance(frame, StereoFrame):
+            raise DeviceError(f"{self.config.source.uri} delivers single images; the live loop needs a stereo "
+                              "source (stereo:LEFT,RIGHT, depthai:, or a replay of left/ and right/)")
+        self._last_frame_ns = time.monotonic_ns()
+        self._backoff_s = self.config.loop.reconnect_min_s
+        self.stats.source_dropped(self._source.dropped)
+        self._process(frame)
+        if not self._ready_sent:
+            self._ready_sent = True
+            self.state = "running"
+            self.notifier.ready(f"first frame processed; publishing on {self.config.publish.endpoint}")
+            log.info("first frame processed: ready")
+        return True
+
+    def _process(self, frame: StereoFrame) -> None:
+        """Detect, estimate and publish the pose of one stereo frame (an invalid pose for a bad frame)."""
+        cfg = self.config
+        problem = (check_image(frame.left.image, cfg.cameras.image_size, "left")
+                   or check_image(frame.right.image, cfg.cameras.image_size, "right"))
+        failed_images = 0
+        if problem is None:
+            try:
+                assert self._pool is not None
+                right = self._pool.submit(edgecal.detect, frame.right.image, cfg.target, cfg.detector)
+                left_det = edgecal.detect(frame.left.image, cfg.target, cfg.detector)
+                right_det = right.result()
+                failed_images = int(not left_det) + int(not right_det)
+                pose = estimate_pose(left_det, right_det, cfg.target, cfg.cameras, cfg.pose)
+            except InputError as exc:
+                problem = str(exc)
+            except Exception as exc:     # a bug must not kill a daemon that runs for weeks: log, count, go on
+                self.stats.errors += 1
+                self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exc!r}", exc_info=True)
+                pose = Pose.invalid(f"internal error: {type(exc).__name__}")
+        if problem is not None:
+            self.stats.corrupt_frames += 1
+            self._rate_limited_error(f"corrupt frame {frame.left.seq}: {problem}")
+            pose = Pose.invalid(f"corrupt frame: {problem}")
+        now = time.monotonic_ns()
+        capture_ns, _basis = capture_time_ns(frame, now)
+        assert self._publisher is not None
+        msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now)
+        msg["latency_ns"] = int(now - capture_ns)
+        msg["latency_from"] = _basis
+        self._publisher.send_pose(msg)
+        self.stats.frame_done(now - capture_ns, pose.valid, failed_images)
+
+    def _report(self, now: int) -> None:
+        """Once a period: log the figures at INFO, publish them as status, pet the watchdog."""
+        figures = self.stats.period(now)
+        lat = figures["latency_ms"]
+        log.info("%s: %.1f fps, latency median %s ms p99 %s ms, %d dropped, %d detection failures, "
+                 "%d corrupt, %d invalid poses%s", self.state, figures["fps"], lat["median"], lat["p99"],
+                 figures["dropped_frames"], figures["detection_failures"], figures["corrupt_frames"],
+                 figures["poses_invalid"], f" ({self._last_message})" if self._last_message else "")
+        figures["source"] = self.config.source.uri
+        if self._publisher is not None:
+            self._publisher.send_status(status_message(self.state, figures, now, self._last_message))
+        self.notifier.watchdog()
+        self.notifier.status(f"{self.state}: {figures['fps']} fps, p99 {lat['p99']} ms")
+        self._next_status_ns = now + int(self.config.loop.status_period_s * 1e9)
+
+    def _do_reload(self) -> None:
+        """Reload the config file; a broken file is logged and the running config kept."""
+        self.notifier.reloading()
+        try:
+            new = load_live_config(self.config.path)
+        except EdgecalError as exc:
+            self.stats.reload_failures += 1
+            self._last_message = f"reload failed, keeping the running config: {exc}"
+            log.error("%s", self._last_message)
+            self.notifier.ready()
+            return
+        old = self.config
+        if new.publish != old.publish:
+            assert self._publisher is not None
+            self._publisher.close()
+            self._publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
+        if new.source != old.source or new.loop.latest_frame_wins != old.loop.latest_frame_wins:
+            self._close_source()            # reopened with the new settings on the next pass
+            self._next_open_ns = 0
+        self.config = new
+        self._backoff_s = new.loop.reconnect_min_s
+        self._last_message = ""
+        log.info("config %s reloaded", new.path)
+        self.notifier.ready()
+
+    def _rate_limited_error(self, text: str, exc_info: bool = False) -> None:
+        """Log at most one such error per status period (a broken camera must not flood the journal)."""
+        now = time.monotonic_ns()
+        if now - self._last_error_log_ns >= int(self.config.loop.status_period_s * 1e9):
+            self._last_error_log_ns = now
+            log.error("%s", text, exc_info=exc_info)
+
+
+def run_live(config_path: str, notifier: SystemdNotifier | None = None) -> int:
+    """Load ``config_path`` (exiting on a bad field before any device opens) and run the loop."""
+    return LiveLoop(load_live_config(config_path), notifier=notifier).run()

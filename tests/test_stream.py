@@ -1,0 +1,166 @@
+"""The live loop end to end: a replayed rendered robot sequence, the real detector, a real subscriber."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq
+from scipy.spatial.transform import Rotation
+
+from edgecal.errors import ConfigError
+from edgecal.stream import LiveLoop, load_live_config
+from edgecal.stream.loop import check_image
+from live_fixtures import free_endpoint, render_robot, write_config
+
+N_FRAMES = 4
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    folder = tmp_path_factory.mktemp("robot")
+    return folder, render_robot(folder, N_FRAMES)
+
+
+class Subscriber:
+    """A SUB socket collecting every message in a background thread."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.ctx = zmq.Context()
+        self.sock = self.ctx.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
+        self.sock.connect(endpoint)
+        self.messages: list[dict] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if self.sock.poll(50):
+                _topic, body = self.sock.recv_multipart()
+                self.messages.append(json.loads(body))
+
+    def of(self, kind: str) -> list[dict]:
+        return [m for m in list(self.messages) if m["type"] == kind]
+
+    def wait_for(self, condition, timeout_s: float = 20.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if condition():
+                return True
+            time.sleep(0.02)
+        return False
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+        self.ctx.term()
+
+
+def run_in_thread(loop: LiveLoop) -> tuple[threading.Thread, list]:
+    result: list = []
+    th = threading.Thread(target=lambda: result.append(loop.run()))
+    th.start()
+    return th, result
+
+
+def test_loop_publishes_poses_matching_truth(sequence: tuple[Path, dict], tmp_path: Path) -> None:
+    folder, truth = sequence
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", folder, endpoint,
+                       source_extra={"pace": "fast", "loop": True}, loop={"latest_frame_wins": False})
+    sub = Subscriber(endpoint)
+    loop = LiveLoop(load_live_config(cfg))
+    th, result = run_in_thread(loop)
+    try:
+        seen = lambda: {m["seq"] % N_FRAMES for m in sub.of("pose")} == set(range(N_FRAMES))
+        assert sub.wait_for(seen), f"got {len(sub.of('pose'))} poses"
+        assert sub.wait_for(lambda: len(sub.of("status")) >= 1)
+    finally:
+        loop.request_stop()
+        th.join(10)
+        sub.close()
+    assert not th.is_alive() and result == [0]
+    for msg in sub.of("pose"):
+        frame = truth["frames"][msg["seq"] % N_FRAMES]
+        assert msg["version"] == 1 and msg["valid"], msg["reason"]
+        assert msg["quality"]["mode"] == "stereo"
+        assert msg["latency_ns"] > 0 and msg["latency_from"] == "receive"
+        err_mm = 1000 * np.linalg.norm(np.array(msg["pose"]["position_m"]) - frame["t_rig_robot_m"])
+        q_err = Rotation.from_quat(msg["pose"]["orientation_xyzw"]) * Rotation.from_matrix(frame["R_rig_robot"]).inv()
+        assert err_mm < 3.0
+        assert np.degrees(q_err.magnitude()) < 0.3
+        cov = np.array(msg["covariance"]).reshape(6, 6)
+        assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    status = sub.of("status")[-1]
+    assert status["frames"] >= N_FRAMES and status["corrupt_frames"] == 0
+    assert set(status["latency_ms"]) == {"median", "p99"}
+
+
+def test_loop_survives_corrupt_frames(sequence: tuple[Path, dict], tmp_path: Path) -> None:
+    """A truncated PNG and a frame of the wrong size: each is counted and published as invalid, the loop goes on."""
+    folder, _ = sequence
+    bad = tmp_path / "bad"
+    for side in ("left", "right"):
+        (bad / side).mkdir(parents=True)
+        for k in range(3):
+            (bad / side / f"{k:06d}.png").write_bytes((folder / side / f"{k:06d}.png").read_bytes())
+    (bad / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
+    # frame 1: the left PNG is cut off; frame 2: the right image is half size.
+    data = (bad / "left" / "000001.png").read_bytes()
+    (bad / "left" / "000001.png").write_bytes(data[: len(data) // 3])
+    import cv2
+    small = cv2.imread(str(bad / "right" / "000002.png"), cv2.IMREAD_UNCHANGED)[::2, ::2]
+    cv2.imwrite(str(bad / "right" / "000002.png"), small)
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"pace": "fast"},
+                       loop={"latest_frame_wins": False, "stop_at_end": True})
+    sub = Subscriber(endpoint)
+    time.sleep(0.2)
+    loop = LiveLoop(load_live_config(cfg))
+    try:
+        assert loop.run() == 0
+        sub.wait_for(lambda: len(sub.of("status")) >= 1, 2.0)
+    finally:
+        sub.close()
+    assert loop.stats.corrupt_frames == 2
+    assert loop.stats.poses_valid == 1
+    poses = {m["seq"]: m for m in sub.of("pose")}
+    assert poses[0]["valid"]
+    assert not poses[2]["valid"] and "corrupt frame" in poses[2]["reason"] and "640x400" in poses[2]["reason"]
+
+
+def test_check_image() -> None:
+    ok = np.zeros((800, 1280), np.uint8)
+    assert check_image(ok, (1280, 800), "left") is None
+    assert "1280x800" in check_image(ok[:10], (1280, 800), "left")
+    assert "dtype float32" in check_image(ok.astype(np.float32), (1280, 800), "left")
+    assert "NoneType" in check_image(None, (1280, 800), "right")
+
+
+@pytest.mark.parametrize("edit, field", [
+    ({"publish": {"endpoint": "tcp://0.0.0.0:5560"}}, "publish.endpoint"),
+    ({"pose": {"max_rms_px": -1}}, "pose.max_rms_px"),
+    ({"pose": {"triangulation": "magic"}}, "pose.triangulation"),
+    ({"loop": {"status_period": 1}}, "loop.status_period"),
+    ({"rig": "/nonexistent/rig.yaml"}, "rig"),
+    ({"target": "targets/nope.yaml"}, "target"),
+    ({"source": {"driver": "replay", "path": "x", "fsp": 3}}, "source.fsp"),
+    ({"extra": 1}, "extra"),
+])
+def test_bad_config_names_the_field(sequence: tuple[Path, dict], tmp_path: Path, edit: dict, field: str) -> None:
+    import yaml
+    folder, _ = sequence
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint())
+    doc = yaml.safe_load(cfg.read_text())
+    doc.update(edit)
+    cfg.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match=f"field '{field}'"):
+        load_live_config(cfg)
