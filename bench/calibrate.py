@@ -86,7 +86,9 @@ def _noisy(cs: CornerSet, sigma: float, rng: np.random.Generator) -> CornerSet:
 
 
 def _angle_deg(r: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+    """Rotation angle of ``r`` (made orthonormal first: published matrices are rounded), accurate near 0."""
+    u, _, vt = np.linalg.svd(r)
+    return float(np.degrees(np.linalg.norm(cv2.Rodrigues(u @ vt)[0])))
 
 
 def _score(cams: list[Camera], r: np.ndarray, t: np.ndarray, box_pose: Pose, rms: float, truth: dict,

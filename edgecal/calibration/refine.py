@@ -118,15 +118,20 @@ class _Layout:
 
     def unpack(self, x: np.ndarray, start: list[Camera]) -> tuple[list[Camera], list[Pose], list[Pose]]:
         cams = []
+        free = np.array(self.free_intr, dtype=np.int64)
+        fixed_dist = np.array([4 + i for i in range(5) if i not in self.free_dist], dtype=np.int64)
         for c in range(self.n_cameras):
-            k0, d0 = start[c].camera_matrix, np.r_[np.ravel(start[c].dist_coeffs), np.zeros(5)][:5]
-            full = np.r_[k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2], d0]
-            full[list(self.free_intr)] = x[self.cam_slice[c]]
-            full[4 + np.setdiff1d(np.arange(5), self.free_dist).astype(int)] = 0.0  # fixed terms are 0
-            k = np.array([[full[0], 0, full[2]], [0, full[1], full[3]], [0, 0, 1.0]])
-            cams.append(Camera(k, full[4:9].copy()))
-        views = [Pose(x[s][:3].copy(), x[s][3:].copy()) for s in self.view_slice]
-        rigs = [Pose(x[s][:3].copy(), x[s][3:].copy()) for s in self.rig_slice]
+            k0 = start[c].camera_matrix
+            full = np.zeros(9)
+            full[:4] = (k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2])
+            d0 = np.ravel(start[c].dist_coeffs)[:5]
+            full[4:4 + len(d0)] = d0
+            full[free] = x[self.cam_slice[c]]
+            full[fixed_dist] = 0.0  # terms outside the model are 0
+            k = np.array([[full[0], 0.0, full[2]], [0.0, full[1], full[3]], [0.0, 0.0, 1.0]])
+            cams.append(Camera(k, full[4:9]))
+        views = [Pose(x[s][:3], x[s][3:]) for s in self.view_slice]
+        rigs = [Pose(x[s][:3], x[s][3:]) for s in self.rig_slice]
         return cams, views, rigs
 
 
