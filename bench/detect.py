@@ -21,9 +21,10 @@ from __future__ import annotations
 
 import os
 
-# Single thread everywhere, before numpy/numba/OpenCV are imported.
-for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+if __name__ == "__main__":
+    # Single thread everywhere, before numpy/numba/OpenCV are imported (not when a test imports this).
+    for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ[_var] = "1"
 
 import argparse  # noqa: E402
 import fnmatch  # noqa: E402
@@ -40,8 +41,6 @@ from typing import Callable  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-
-cv2.setNumThreads(1)
 
 from edgecal.errors import EdgecalError  # noqa: E402
 from edgecal.evaluate import (  # noqa: E402
@@ -533,8 +532,8 @@ def format_table(bset: BenchSet, results: dict[str, SetResult]) -> str:
 def machine_line() -> str:
     """Where the numbers were taken."""
     return (f"{platform.node()} {platform.machine()}, {os.cpu_count()} cores (shared), "
-            f"Python {platform.python_version()}, OpenCV {cv2.__version__}, numpy {np.__version__}, "
-            f"single thread")
+            f"Python {platform.python_version()}, OpenCV {cv2.__version__} (threads {cv2.getNumThreads()}), "
+            f"numpy {np.__version__}, NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'unset')}")
 
 
 def write_json_atomic(path: Path, data: dict, force: bool) -> None:
@@ -627,6 +626,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write all results to this JSON file")
     ap.add_argument("--force", action="store_true", help="overwrite the --json file if it exists")
     args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
 
     names = [n.strip() for n in args.detectors.split(",") if n.strip()]
     unknown = [n for n in names if n not in DETECTOR_NAMES]
