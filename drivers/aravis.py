@@ -68,20 +68,38 @@ def convert_buffer(data: bytes, width: int, height: int, pixel_format: str) -> n
 
 
 class ClockMapper:
-    """Maps a device clock onto CLOCK_MONOTONIC by the smallest (receive - device) offset, allowing drift."""
+    """Maps a device clock onto CLOCK_MONOTONIC by the smallest (receive - device) offset.
 
-    def __init__(self) -> None:
+    The smallest offset seen belongs to the frame that crossed the link fastest; it is an upper bound
+    on the true clock offset. During the first ``warmup`` frames the offset follows every new minimum;
+    after that it moves by at most ``max_slew_ns`` per frame (towards a new minimum, or upwards by the
+    allowed drift), so one lucky packet or a step cannot put a jump into the stamps' spacing.
+    """
+
+    def __init__(self, warmup: int = 30, max_slew_ns: int = 20_000) -> None:
         self.offset_ns: int | None = None
         self.last_device_ns = 0
+        self.count = 0
+        self.warmup = warmup
+        self.max_slew_ns = max_slew_ns
 
     def to_monotonic(self, device_ns: int, recv_ns: int) -> int:
-        """The monotonic time at which the device stamped ``device_ns``."""
+        """The monotonic time at which the device stamped ``device_ns``.
+
+        After the warm-up a stamp can lie up to the still-unslewed part of a new minimum after
+        ``recv_ns``; smooth spacing matters more to the pose filter than that sub-millisecond bound.
+        """
         sample = recv_ns - device_ns
         if self.offset_ns is None:
             self.offset_ns = sample
         else:
             relaxed = self.offset_ns + int(_DRIFT_PPM * max(0, device_ns - self.last_device_ns))
-            self.offset_ns = min(relaxed, sample)
+            target = min(relaxed, sample)
+            if self.count < self.warmup:
+                self.offset_ns = target
+            else:
+                self.offset_ns = max(target, self.offset_ns - self.max_slew_ns)
+        self.count += 1
         self.last_device_ns = device_ns
         return device_ns + self.offset_ns
 
@@ -97,6 +115,7 @@ class AravisSource(Source):
         self._stream: Any = None
         self._lost = threading.Event()
         self._failed = False
+        self.release_thread: threading.Thread | None = None   # set when close() releases in the background
         self._clock = ClockMapper()
         self._dropped = 0
         self._seq = 0
@@ -104,6 +123,7 @@ class AravisSource(Source):
         self._width = self._height = 0
         self.exposure_us: float | None = None
         self.gain_db: float | None = None
+        self.last_device_ns = 0   # the raw device timestamp of the last frame (before mapping)
         self.info: dict[str, Any] = {}
 
     @property
@@ -274,6 +294,7 @@ class AravisSource(Source):
                 if device_ns == 0:  # no device timestamp: the host's arrival time (realtime) instead
                     device_ns = int(buf.get_system_timestamp()) - (time.time_ns() - time.monotonic_ns())
                 stamp = self._clock.to_monotonic(device_ns, recv)
+                self.last_device_ns = device_ns
                 frame_id = int(buf.get_frame_id())
             finally:
                 self._stream.push_buffer(buf)
@@ -295,7 +316,9 @@ class AravisSource(Source):
         held = [self._stream, self._camera]
         self._camera = self._stream = None
         if self._failed or self._lost.is_set():
-            threading.Thread(target=_release, args=(held,), name=f"release {self.uri}", daemon=True).start()
+            self.release_thread = threading.Thread(target=_release, args=(held,), name=f"release {self.uri}",
+                                                   daemon=True)
+            self.release_thread.start()
             return
         try:
             held[1].stop_acquisition()

@@ -42,12 +42,19 @@ def _require_aravis() -> None:
         pytest.skip(problem)
 
 
+def _die_with_parent() -> None:
+    """In the child: receive SIGKILL when the test process dies (no orphaned camera holding the port)."""
+    import ctypes
+    import signal
+    ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+
+
 class FakeCamera:
     """A running arv-fake-gv-camera-0.8 process on 127.0.0.1."""
 
     def __init__(self) -> None:
         self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", "EDGECAL"], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE)
+                                     stderr=subprocess.PIPE, preexec_fn=_die_with_parent)
         from edgecal.drivers.aravis import load_aravis
         Aravis = load_aravis()
         deadline = time.monotonic() + 5.0
@@ -144,25 +151,6 @@ def test_builtin_fake_interface() -> None:
     assert f.image.shape == (48, 64)
 
 
-# Last in this file: libaravis tears the dead connection down in the background for a few seconds.
-def test_camera_killed_mid_stream_raises_after_the_timeout(fake_camera: FakeCamera) -> None:
-    src = open_source("aravis:127.0.0.1?fps=50&timeout_s=0.5")
-    src.open()
-    try:
-        src.read()
-        fake_camera.kill()
-        t0 = time.monotonic()
-        with pytest.raises(DeviceError, match=r"no frame within 0.5 s|lost contact"):
-            for _ in range(100):   # frames already in flight may still arrive
-                src.read()
-        assert time.monotonic() - t0 < 1.5
-    finally:
-        t1 = time.monotonic()
-        src.close()
-    assert time.monotonic() - t1 < 0.5     # close() did not wait for the dead camera
-    assert src._camera is None and src._stream is None
-
-
 @pytest.mark.parametrize("fmt, origin", [("BayerRG8", (0, 0)), ("BayerGR8", (0, 1)), ("BayerGB8", (1, 0)),
                                           ("BayerBG8", (1, 1))])
 def test_bayer_patterns_decode_to_the_right_colours(fmt: str, origin: tuple[int, int]) -> None:
@@ -191,3 +179,49 @@ def test_sources_lists_the_fake_and_probes_by_address(fake_camera: FakeCamera, c
     assert aravis["usable"] and any(s["uri"] == "aravis:fake" for s in aravis["sources"])
     assert data["probes"] == [{"uri": "aravis:127.0.0.1", "name": data["probes"][0]["name"], "usable": True,
                                "why": "", "size": "512x512"}]
+
+
+def test_clock_mapping_keeps_the_device_spacing() -> None:
+    from edgecal.drivers.aravis import ClockMapper
+    rng = np.random.default_rng(1)
+    period, n = 10_000_000, 400
+    device = 5_000_000_000_000 + np.arange(n) * period          # a perfectly regular camera clock
+    transport = rng.exponential(1_000_000, n) + 300_000          # network delay: >= 0.3 ms, long tail
+    recv = 123_000_000 + device - 5_000_000_000_000 + transport.astype(np.int64)
+    m = ClockMapper()
+    stamps = np.array([m.to_monotonic(int(d), int(r)) for d, r in zip(device, recv)])
+    assert np.all(stamps[:30] <= recv[:30])                       # warm-up: an upper bound, never after receipt
+    after = np.diff(stamps[30:])
+    assert np.abs(after - period).max() <= 20_000 + 200           # slewed by <= 20 us a frame (+ 20 ppm drift)
+    true_capture = recv - transport.astype(np.int64)
+    # Stamps lag the true capture by the fastest packets' delay (0.3 ms here), no more.
+    lag = np.median(stamps[100:] - true_capture[100:])
+    assert 300_000 - 20_000 <= lag < 300_000 + 100_000
+
+
+# Last in this file: it leaves libaravis tearing down a dead session (finished before the test ends).
+def test_camera_killed_mid_stream_raises_after_the_timeout(fake_camera: FakeCamera) -> None:
+    src = open_source("aravis:127.0.0.1?fps=50&timeout_s=0.5")
+    src.open()
+    try:
+        src.read()
+        fake_camera.kill()
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match=r"no frame within 0.5 s|lost contact"):
+            for _ in range(100):   # frames already in flight may still arrive
+                src.read()
+        assert time.monotonic() - t0 < 1.5
+    finally:
+        t1 = time.monotonic()
+        src.close()
+    assert time.monotonic() - t1 < 0.5     # close() did not wait for the dead camera
+    assert src._camera is None and src._stream is None
+    # libaravis's teardown of the dead session retries its GigE Vision commands for ~10 s; a camera that
+    # comes back answers them at once. Wait for it here so no later test shares libaravis with it.
+    back = FakeCamera()
+    try:
+        assert src.release_thread is not None
+        src.release_thread.join(8.0)
+        assert not src.release_thread.is_alive()
+    finally:
+        back.kill()
