@@ -146,7 +146,7 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         rigs = [Pose.from_rt(r, np.ravel(t))]
         notes.append(f"OpenCV stereoCalibrate RMS {out[0]:.3f} px")
     corners = cams_views
-    res = refine(observations_for(corners), cameras, view_poses, rigs, options)
+    res = refine(observations_for(corners, list(index)), cameras, view_poses, rigs, options)
     cal = calibration_from_result("planar-stereo" if stereo else "planar-mono", image_size, corners, res)
     cal.view_index = list(index)
     cal.notes = notes + cal.notes + [f"{len(index)} {what} used: {', '.join(str(i) for i in index)}"]

@@ -303,11 +303,15 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
                         residuals, inliers, dropped, rank_deficient)
 
 
-def observations_for(corners: list[list[CornerSet]]) -> list[Observation]:
-    """One Observation per camera and view of ``corners[camera][view]`` (empty sets are skipped)."""
+def observations_for(corners: list[list[CornerSet]], view_ids: list[int] | None = None) -> list[Observation]:
+    """One Observation per camera and view of ``corners[camera][view]`` (empty sets are skipped).
+
+    ``view_ids`` name the views in corner labels (e.g. the input image numbers); default 0, 1, ...
+    """
     names = CAMERA_NAMES if len(corners) == 2 else ("camera",)
     multi = max(len(c) for c in corners) > 1
-    return [Observation(c, v, cs.object_mm, cs.image_px, cs.labels(names[c], v if multi else None))
+    ids = view_ids if view_ids is not None else list(range(max(len(c) for c in corners)))
+    return [Observation(c, v, cs.object_mm, cs.image_px, cs.labels(names[c], ids[v] if multi else None))
             for c, per_view in enumerate(corners) for v, cs in enumerate(per_view) if len(cs)]
 
 

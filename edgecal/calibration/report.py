@@ -145,7 +145,8 @@ def write_report(cal: Calibration, images: list[list[np.ndarray]], folder: str |
         for v, cs in enumerate(cal.corners[c]):
             if v >= len(images[c]) or not len(cs):
                 continue
-            fname = f"overlay_{name}_{v:02d}.png" if multi else f"overlay_{name}.png"
+            number = cal.view_index[v] if v < len(cal.view_index) else v  # the input image's number
+            fname = f"overlay_{name}_{number:02d}.png" if multi else f"overlay_{name}.png"
             plan.append((out / fname, overlay(images[c][v], cs.image_px, cal.residuals_px[c][v], cal.inliers[c][v])))
     plan.append((out / "residual_histogram.png", residual_histogram(cal)))
     per_board = cal.per_board_rms_px()
