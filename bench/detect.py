@@ -106,6 +106,7 @@ class BenchSet:
     items: list[Item]
     note: str = ""
     timing_only: bool = False
+    count_only: bool = False
 
 
 def _target_from_boards(boards: list[dict], name: str) -> Target | None:
@@ -169,7 +170,7 @@ def real_set(root: Path, name: str) -> BenchSet | None:
         note = f"reference corners for {len(refs)} of {len(items)} images (not exact truth)"
     if board is None:
         note = "several boards of unknown size: boards reported are counted, nothing is scored"
-    return BenchSet(f"real/{name}", items, note) if items else None
+    return BenchSet(f"real/{name}", items, note, count_only=board is None) if items else None
 
 
 def timing_set(sets: list[BenchSet], size: tuple[int, int] = (1280, 800)) -> BenchSet | None:
@@ -529,6 +530,43 @@ def format_table(bset: BenchSet, results: dict[str, SetResult]) -> str:
     return "\n".join(lines)
 
 
+def format_markdown(all_results: list[tuple[BenchSet, dict[str, SetResult]]], detectors: list[str]) -> str:
+    """Two Markdown tables for the README: detection (found, false, RMS) and speed (median ms, ratio)."""
+    head = "| set | images | " + " | ".join(detectors) + " |"
+    rule = "|---|---:|" + "---:|" * len(detectors)
+    found_rows, speed_rows = [], []
+    for bset, results in all_results:
+        sums = {n: r.summary() for n, r in results.items()}
+        base = sums.get("edgecal")
+        found_cells, speed_cells = [], []
+        for n in detectors:
+            s = sums.get(n)
+            if s is None or s["images"] == 0:
+                found_cells.append("n/a")
+                speed_cells.append("n/a")
+                continue
+            ratio = _ratio(s["median_ms"], base["median_ms"]) if base and base["images"] else "-"
+            ms = _fmt(s["median_ms"], 0)
+            speed_cells.append(ms if ratio == "-" else f"{ms} ({ratio.replace('x', '×')})")
+            parts = []
+            if s["truth_boards"]:
+                parts.append(f"{s['found']}/{s['truth_boards']}")
+            if bset.count_only:
+                parts.append(f"{s['reported_boards']} reported")
+            if np.isfinite(s["rms_px"]):
+                parts.append(f"{s['rms_px']:.3f} px")
+            if s["false_boards"] or (not s["truth_boards"] and not bset.count_only):
+                parts.append(f"{s['false_boards']} false")
+            found_cells.append(" · ".join(parts))
+        if not bset.timing_only:
+            found_rows.append(f"| {bset.name} | {len(bset.items)} | " + " | ".join(found_cells) + " |")
+        speed_rows.append(f"| {bset.name} | {len(bset.items)} | " + " | ".join(speed_cells) + " |")
+    return "\n".join(["Boards found with all corners correctly ordered / boards · corner RMS over found boards"
+                      " · false boards:", "", head, rule, *found_rows, "",
+                      "Median ms per image (ratio to edgecal; above 1× means slower than edgecal):", "",
+                      head, rule, *speed_rows, ""])
+
+
 def machine_line() -> str:
     """Where the numbers were taken."""
     return (f"{platform.node()} {platform.machine()}, {os.cpu_count()} cores (shared), "
@@ -538,13 +576,18 @@ def machine_line() -> str:
 
 def write_json_atomic(path: Path, data: dict, force: bool) -> None:
     """Write ``data`` to ``path`` via a temp file in the same folder; refuse to overwrite unless force."""
+    write_text_atomic(path, json.dumps(data, indent=1, default=float), force)
+
+
+def write_text_atomic(path: Path, text: str, force: bool) -> None:
+    """Write ``text`` to ``path`` via a temp file in the same folder; refuse to overwrite unless force."""
     if path.exists() and not force:
         raise EdgecalError(f"{path}: exists; pass --force to overwrite it")
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1, default=float)
+            fh.write(text)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -624,7 +667,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="timed calls per image (the median is kept)")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding synthetic/ and real/")
     ap.add_argument("--json", type=Path, help="also write all results to this JSON file")
-    ap.add_argument("--force", action="store_true", help="overwrite the --json file if it exists")
+    ap.add_argument("--markdown", type=Path, help="also write the README tables (Markdown) to this file")
+    ap.add_argument("--force", action="store_true", help="overwrite the --json/--markdown files if they exist")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
 
@@ -634,9 +678,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench: unknown detector(s) {', '.join(unknown)}; choose from {', '.join(DETECTOR_NAMES)}",
               file=sys.stderr)
         return 2
-    if args.json and args.json.exists() and not args.force:
-        print(f"bench: {args.json} exists; pass --force to overwrite it", file=sys.stderr)
-        return 2
+    for out in (args.json, args.markdown):
+        if out and out.exists() and not args.force:
+            print(f"bench: {out} exists; pass --force to overwrite it", file=sys.stderr)
+            return 2
     patterns = [p.strip() for p in args.sets.split(",") if p.strip()]
     if "*" in patterns:
         patterns.append("timing/*")
@@ -667,14 +712,22 @@ def main(argv: list[str] | None = None) -> int:
                                            "policy": d.policy} for d in detectors},
                     "sets": {}}
     done: dict[tuple[int, str], ImageResult] = {}
+    all_results = []
     for bset in sets:
         results = run_set(bset, detectors, args.repeat, done)
+        all_results.append((bset, results))
         print()
         print(format_table(bset, results), flush=True)
         report["sets"][bset.name] = result_json(bset, results)
     if args.json:
         write_json_atomic(args.json, report, args.force)
         print(f"\n# wrote {args.json}")
+    if args.markdown:
+        ran = [d.name for d in detectors if d.run is not None]
+        text = f"Measured {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} on {machine_line()}; " \
+               f"--repeat {args.repeat}.\n\n" + format_markdown(all_results, ran)
+        write_text_atomic(args.markdown, text, args.force)
+        print(f"# wrote {args.markdown}")
     return 0
 
 
