@@ -147,65 +147,6 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
-def _undistort_kernel(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float, p1: float, p2: float,
-                      k3: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
-    n = xd.shape[0]
-    px = np.nan
-    py = np.nan
-    pxd = 0.0
-    pyd = 0.0
-    for i in range(n):
-        # Warm start from the previous point (grids are walked row by row), else from the distorted point.
-        if px == px:
-            x = px + (xd[i] - pxd)
-            y = py + (yd[i] - pyd)
-        else:
-            x = xd[i]
-            y = yd[i]
-        ok = False
-        for _ in range(40):
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[i]
-            fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd[i]
-            dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
-            a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
-            b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
-            c = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
-            d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
-            det = a * d - b * c
-            if det <= 1e-9:
-                # The distortion folds over here: no unique inverse.
-                break
-            sx = (d * fx - b * fy) / det
-            sy = (a * fy - c * fx) / det
-            x -= sx
-            y -= sy
-            if abs(sx) + abs(sy) < 1e-14:
-                ok = True
-                break
-        if not ok:
-            # Check the residual once more: a converged point may stop one step early.
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd[i]
-            fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd[i]
-            ok = abs(fx) + abs(fy) < 1e-12
-        if ok:
-            out_x[i] = x
-            out_y[i] = y
-            px = x
-            py = y
-            pxd = xd[i]
-            pyd = yd[i]
-        else:
-            out_x[i] = np.nan
-            out_y[i] = np.nan
-            px = np.nan
-            py = np.nan
-
-
-@njit(cache=True, nogil=True)
 def _newton_undistort(xd: float, yd: float, x: float, y: float, k1: float, k2: float, p1: float, p2: float,
                       k3: float) -> tuple[float, float, bool]:
     """Solve distort(x, y) = (xd, yd) by Newton's method from the guess (x, y)."""
@@ -234,6 +175,38 @@ def _newton_undistort(xd: float, yd: float, x: float, y: float, k1: float, k2: f
 
 
 @njit(cache=True, nogil=True)
+def _undistort_kernel(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float, p1: float, p2: float,
+                      k3: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
+    """Undistort a list of points; each starts from the previous solution when there is one."""
+    px = np.nan
+    py = np.nan
+    pxd = 0.0
+    pyd = 0.0
+    for i in range(xd.shape[0]):
+        if px == px:
+            x0 = px + (xd[i] - pxd)
+            y0 = py + (yd[i] - pyd)
+        else:
+            x0 = xd[i]
+            y0 = yd[i]
+        x, y, ok = _newton_undistort(xd[i], yd[i], x0, y0, k1, k2, p1, p2, k3)
+        if not ok and px == px:
+            # A far-away previous point can be a poor start: try from the distorted point itself.
+            x, y, ok = _newton_undistort(xd[i], yd[i], xd[i], yd[i], k1, k2, p1, p2, k3)
+        if ok:
+            out_x[i] = x
+            out_y[i] = y
+            px = x
+            py = y
+            pxd = xd[i]
+            pyd = yd[i]
+        else:
+            out_x[i] = np.nan
+            out_y[i] = np.nan
+            px = np.nan
+
+
+@njit(cache=True, nogil=True)
 def _undistort_grid(fx: float, skew: float, cx: float, fy: float, cy: float, k1: float, k2: float, p1: float,
                     p2: float, k3: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
     """Rays through the pixel-corner grid: out[i, j] for pixel point (j - 0.5, i - 0.5)."""
@@ -253,6 +226,8 @@ def _undistort_grid(fx: float, skew: float, cx: float, fy: float, cy: float, k1:
                     x = xd
                     y = yd
             x, y, ok = _newton_undistort(xd, yd, x, y, k1, k2, p1, p2, k3)
+            if not ok:
+                x, y, ok = _newton_undistort(xd, yd, xd, yd, k1, k2, p1, p2, k3)
             if ok:
                 out_x[i, j] = x
                 out_y[i, j] = y

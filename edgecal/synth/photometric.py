@@ -52,10 +52,11 @@ def illumination(size: tuple[int, int], gradient: tuple[float, float], vignettin
     w, h = size
     xn = (np.arange(w, dtype=np.float32) - (w - 1) / 2.0) / (w / 2.0)
     yn = (np.arange(h, dtype=np.float32) - (h - 1) / 2.0) / (h / 2.0)
-    light = 1.0 + gradient[0] * xn[None, :] + gradient[1] * yn[:, None]
+    light = np.add.outer(np.float32(gradient[1]) * yn, np.float32(1.0) + np.float32(gradient[0]) * xn)
     if vignetting:
-        light = light * (1.0 - vignetting * 0.5 * (xn[None, :] ** 2 + yn[:, None] ** 2))
-    return np.maximum(light, 0.05).astype(np.float32)
+        v = np.float32(0.5 * vignetting)
+        light *= np.add.outer(-v * yn * yn, np.float32(1.0) - v * xn * xn)
+    return np.maximum(light, np.float32(0.05))
 
 
 def apply_photometric(radiance: np.ndarray, params: Photometric, rng: np.random.Generator) -> np.ndarray:

@@ -329,12 +329,28 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.
                     out[i, j] = low * a_low + (1.0 - low) * a_high
                     coverage[i, j] = 1.0
                     continue
-            n_sampled += 1
-            # X-junctions of a pattern (3+ cells of one panel) decide corner positions: sample them densely.
             p00 = l00 // 1000000
             one_panel = (l00 >= 0 and l10 // 1000000 == p00 and l01 // 1000000 == p00
                          and l11 // 1000000 == p00 and l10 >= 0 and l01 >= 0 and l11 >= 0)
-            val, cov = _supersample(i, j, rx, ry, panels, bg, n_junction if (n_lab >= 3 and one_panel) else n_ss)
+            n_square_cells = 0
+            if one_panel and panels[p00, 16] > 0.0:
+                cols = int(panels[p00, 17])
+                rows = int(panels[p00, 18])
+                for l in (l00, l10, l01, l11):
+                    ci = (l // 1000) % 1000 - 100
+                    cj = l % 1000 - 100
+                    if -1 <= ci <= cols - 1 and -1 <= cj <= rows - 1:
+                        n_square_cells += 1
+                back_side = (l00 // 1000) % 1000 == 1  # cell index -99 marks the back of a panel
+                if n_square_cells == 0 and not back_side:
+                    # Only margin strips of one board (all white): their borders are not real edges.
+                    out[i, j] = albedo[i, j]
+                    coverage[i, j] = 1.0
+                    continue
+            n_sampled += 1
+            # Junctions of the squares (X inside, T on the border) decide corner positions: sample densely.
+            dense = n_lab >= 3 and one_panel and n_square_cells >= 1
+            val, cov = _supersample(i, j, rx, ry, panels, bg, n_junction if dense else n_ss)
             out[i, j] = val
             coverage[i, j] = cov
     return n_sampled
