@@ -96,3 +96,23 @@ def target_json(panels: list[Panel], frame: str = "world", name: str | None = No
     if name:
         out["name"] = name
     return out
+
+
+def camera_from_json(cam: dict) -> tuple[CameraModel, np.ndarray, np.ndarray]:
+    """The camera and its pose (R_cam_world, t_cam_world_mm) from a truth file's ``camera`` section."""
+    model = CameraModel(np.array(cam["K"], dtype=np.float64), np.array(cam["dist"], dtype=np.float64),
+                        tuple(cam["image_size"]), str(cam.get("name", "cam")))
+    return model, np.array(cam["R_cam_world"], dtype=np.float64), np.array(cam["t_cam_world_mm"], dtype=np.float64)
+
+
+def panels_from_json(target: dict) -> list[Panel]:
+    """The printed panels of a truth file's ``target`` section, to render the same scene again."""
+    from edgecal.targets import Board
+
+    out = []
+    for b in target.get("boards", []):
+        board = Board(str(b["name"]), int(b["cols"]), int(b["rows"]), float(b["square_mm"]))
+        out.append(Panel(board.name, np.array(b["origin_mm"], dtype=np.float64), np.array(b["x_axis"], dtype=np.float64),
+                         np.array(b["y_axis"], dtype=np.float64), tuple(float(v) for v in b["panel_extent_mm"]), board,
+                         float(b.get("black_albedo", 0.06)), float(b.get("white_albedo", 0.85))))
+    return out
