@@ -306,27 +306,34 @@ class AravisSource(Source):
     def close(self) -> None:
         """Stop acquisition and drop every reference to the device, also after an error.
 
-        After a failure the camera no longer answers, and libaravis's own teardown (stop acquisition,
-        release control) waits out its GigE Vision retries, several seconds per command. That wait is
-        moved to a background thread so that close() itself returns at once.
+        A camera that has died no longer answers, and libaravis's own teardown (stop acquisition,
+        release control) then waits out its GigE Vision retries, about 10 s. The teardown runs in a
+        thread: close() waits for it up to a second (a healthy camera is released by then, so it can
+        be reopened at once), not at all after a known failure, and leaves the rest in the background
+        (``release_thread``).
         """
         if self._camera is None:
             return
         # The references live only in this list, which the releasing thread empties.
         held = [self._stream, self._camera]
         self._camera = self._stream = None
-        if self._failed or self._lost.is_set():
-            self.release_thread = threading.Thread(target=_release, args=(held,), name=f"release {self.uri}",
-                                                   daemon=True)
-            self.release_thread.start()
-            return
+        failed = self._failed or self._lost.is_set()
+        self.release_thread = threading.Thread(target=_stop_and_release, args=(held, not failed),
+                                               name=f"release {self.uri}", daemon=True)
+        self.release_thread.start()
+        if not failed:
+            self.release_thread.join(1.0)
+
+
+def _stop_and_release(objects: list[Any], stop: bool) -> None:
+    """Stop acquisition (if asked) and drop the last references to Aravis objects.
+
+    Their finalizers talk to the device (release the stream channel and the control privilege).
+    """
+    if stop:
         try:
-            held[1].stop_acquisition()
+            objects[1].stop_acquisition()
         except Exception:  # the camera may have gone in the meantime; releasing is what matters
             pass
-        _release(held)
-
-def _release(objects: list[Any]) -> None:
-    """Drop the last references to Aravis objects (their finalizers talk to the device)."""
     while objects:
         objects.pop()

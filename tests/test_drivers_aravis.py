@@ -225,3 +225,19 @@ def test_camera_killed_mid_stream_raises_after_the_timeout(fake_camera: FakeCame
         assert not src.release_thread.is_alive()
     finally:
         back.kill()
+
+
+def test_close_after_an_unnoticed_death_is_bounded(fake_camera: FakeCamera) -> None:
+    src = open_source("aravis:127.0.0.1?fps=50&timeout_s=0.5")
+    src.open()
+    src.read()
+    fake_camera.kill()          # nobody reads: the source does not know yet
+    t0 = time.monotonic()
+    src.close()
+    assert time.monotonic() - t0 < 1.5
+    back = FakeCamera()         # answers the background teardown so it ends before the next test
+    try:
+        src.release_thread.join(8.0)
+        assert not src.release_thread.is_alive()
+    finally:
+        back.kill()

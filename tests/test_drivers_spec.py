@@ -74,3 +74,13 @@ def test_config_sections() -> None:
 def test_bad_sections_name_the_field(section: dict, words: str) -> None:
     with pytest.raises(ConfigError, match=words.replace("(", r"\(")):
         spec_from_config(section, "cam.yaml")
+
+
+def test_packaged_example_sections_are_valid() -> None:
+    from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
+    path = packaged_config_path("sources.yaml")
+    data = load_yaml_mapping(path)
+    reader = ConfigReader(data, str(path))
+    specs = {name: spec_from_config(reader.section(name)) for name in data}
+    assert specs["two_usb_cameras"].driver == "stereo" and specs["gige_camera"].settings.latest_only
+    assert {s.driver for s in specs.values()} == {"replay", "v4l2", "aravis", "dc1394", "depthai", "stereo"}
