@@ -173,14 +173,17 @@ def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float, 
 
 @njit(cache=True, nogil=True)
 def _hash01(a: int, b: int, c: int) -> float:
-    """A fixed pseudo-random number in [0, 1) from three integers (splitmix64-style mixing)."""
-    h = (a * 0x9E3779B1 + b * 0x85EBCA77 + c * 0xC2B2AE3D + 0x27D4EB2F) & 0xFFFFFFFFFFFF
-    h ^= h >> 23
-    h = (h * 0x2127599BF4325C37) & 0xFFFFFFFFFFFF
-    h ^= h >> 27
-    h = (h * 0x94D049BB1331) & 0xFFFFFFFFFFFF
-    h ^= h >> 21
-    return (h & 0xFFFFFF) / 16777216.0
+    """A fixed pseudo-random number in [0, 1) from three small non-negative integers.
+
+    32-bit mixing with multipliers below 2^31, so no int64 product can overflow (bit-exact everywhere).
+    """
+    h = ((a * 73856093) ^ (b * 19349663) ^ (c * 83492791)) & 0xFFFFFFFF
+    h ^= h >> 16
+    h = (h * 0x7FEB352D) & 0xFFFFFFFF
+    h ^= h >> 15
+    h = (h * 0x2C1B3C6D) & 0xFFFFFFFF
+    h ^= h >> 16
+    return (h >> 8) / 16777216.0
 
 
 @njit(cache=True, nogil=True)
