@@ -111,3 +111,19 @@ def test_board_needs_square_size(box_pair, tmp_path, capsys):
     d, _ = box_pair
     rc = main(["calibrate", "--board", "9x6", "--left", str(d / "L.png"), "--out", str(tmp_path / "r.yaml")])
     assert rc == 2 and "--square-mm" in _error_line(capsys)
+
+
+REAL = __import__("pathlib").Path("/work/shared/data/real/opencv_stereo_9x6")
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="shared real data not present")
+def test_planar_stereo_cli_on_bouguet_pairs(tmp_path, capsys):
+    """Planar multi-view through the CLI with edgecal's own detector, on 6 pairs of Bouguet's set."""
+    names = ["01", "02", "03", "06", "07", "08"]
+    out = tmp_path / "rig.yaml"
+    rc = main(["calibrate", "--board", "9x6", "--square-mm", "30", "--left", *[str(REAL / f"left{n}.jpg") for n in names],
+               "--right", *[str(REAL / f"right{n}.jpg") for n in names], "--out", str(out)])
+    assert rc == 0, capsys.readouterr()
+    rig = load_rig(out)
+    assert abs(rig.cameras[0].camera_matrix[0, 0] - 533.0) < 15.0
+    assert abs(np.linalg.norm(rig.translation_m) - 0.0998) < 0.002

@@ -158,9 +158,18 @@ def rank_assignments(detections: list[Detection], target: Target, keep: int = 8)
     return scored[:keep]
 
 
+def _warn_if_ambiguous(ranked: list[Assignment], what: str) -> None:
+    ties = _tie(ranked) if ranked and np.isfinite(ranked[0].rms_px) else ranked[:1]
+    if len(ties) > 1:
+        log.warning("%s: %d assignments of the grids fit about equally well (%s px): kept %s; the target "
+                    "may be (nearly) symmetric", what, len(ties),
+                    ", ".join(f"{a.rms_px:.3f}" for a in ties), ties[0].describe())
+
+
 def assign(detections: list[Detection], target: Target) -> Assignment | None:
     """The best assignment of one image's detections (None when nothing of the target was seen)."""
     ranked = rank_assignments(detections, target)
+    _warn_if_ambiguous(ranked, "image")
     return ranked[0] if ranked else None
 
 
@@ -181,6 +190,7 @@ def assign_stereo(left: list[Detection], right: list[Detection],
     if not rl or not rr:
         return (rl[0] if rl else None), (rr[0] if rr else None)
     a_l = rl[0]
+    _warn_if_ambiguous(rl, "left image")
     ties = _tie(rr)
     if len(ties) == 1 or not np.isfinite(a_l.rms_px):
         return a_l, rr[0]

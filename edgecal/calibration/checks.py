@@ -22,13 +22,6 @@ def as_points(object_mm: np.ndarray, image_px: np.ndarray) -> tuple[np.ndarray, 
     return obj, img
 
 
-def planarity_mm(object_mm: np.ndarray) -> float:
-    """The RMS distance (mm) of the points from their best-fit plane: 0 for coplanar points."""
-    pts = np.asarray(object_mm, dtype=np.float64).reshape(-1, 3)
-    centred = pts - pts.mean(axis=0)
-    return float(np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(max(len(pts), 1)))
-
-
 def require_non_coplanar(object_mm: np.ndarray, image_px: np.ndarray, *, min_points: int = 6,
                          what: str = "camera") -> tuple[np.ndarray, np.ndarray]:
     """Validated (obj, img); raise DegenerateInput saying what is missing for a one-shot calibration.

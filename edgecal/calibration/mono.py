@@ -6,6 +6,8 @@ is refined, and the better refined camera is kept; both RMS values are recorded 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from edgecal.calibration.checks import DegenerateInput, require_non_coplanar
@@ -36,11 +38,13 @@ def initialise_camera(corners: CornerSet, image_size: tuple[int, int], options: 
     tried: dict[str, float] = {}
     best: tuple[tuple[int, float], Camera, Pose, RefineResult, str] | None = None
     error: DegenerateInput | None = None
+    # One rejection round is enough to compare the starts; the caller's final refinement does the rest.
+    quick = replace(options, max_rounds=min(options.max_rounds, 1))
     for method in ("tsai", "dlt"):
         try:
             lin = linear_start(corners, image_size, method)
             res = refine(obs, [Camera(lin.camera_matrix, lin.dist_coeffs)],
-                         [Pose.from_rt(lin.rotation, lin.translation)], options=options)
+                         [Pose.from_rt(lin.rotation, lin.translation)], options=quick)
         except DegenerateInput as exc:
             error = error or exc
             continue
@@ -59,7 +63,8 @@ def initialise_camera(corners: CornerSet, image_size: tuple[int, int], options: 
 def calibrate_box_mono(corners: CornerSet, image_size: tuple[int, int],
                        options: RefineOptions = RefineOptions()) -> Calibration:
     """Intrinsics, distortion and box pose of one camera from one image, with standard deviations."""
-    _, _, res, tried = initialise_camera(corners, image_size, options)
+    cam, pose, _, tried = initialise_camera(corners, image_size, options)
+    res = refine(observations_for([[corners]]), [cam], [pose], options=options)
     cal = calibration_from_result("box-mono", image_size, [[corners]], res)
     cal.init = {"camera": tried}
     return cal
@@ -71,4 +76,4 @@ def relative_pose(left: Pose, right: Pose) -> Pose:
     return Pose.from_rt(r, np.ravel(right.tvec) - r @ np.ravel(left.tvec))
 
 
-__all__ = ["calibrate_box_mono", "initialise_camera", "linear_start", "relative_pose", "observations_for"]
+__all__ = ["calibrate_box_mono", "initialise_camera", "linear_start", "relative_pose"]
