@@ -4,7 +4,7 @@
 device id as listed by ``edgecal sources``/``arv-tool-0.8``, or ``fake`` for libaravis's built-in Fake
 camera. Settings: width/height (region at the sensor's top-left), fps, pixel_format (Mono8/10/12/16,
 Bayer 8-bit, RGB8/BGR8: converted to uint8/uint16 grey or BGR), exposure_us, gain_db, trigger
-(free, software, hardware = Line1), packet_size (GigE), buffers.
+(free, software, hardware = Line1, or the first input line offered), packet_size (GigE), buffers.
 
 Timestamps: the device's timestamp (ns) is mapped onto CLOCK_MONOTONIC by the smallest observed
 receive-minus-device offset (the frame that crossed the network fastest), relaxed by 20 ppm so that
@@ -187,7 +187,12 @@ class AravisSource(Source):
             elif s.trigger == "software":
                 cam.set_trigger("Software")
             else:
-                cam.set_trigger("Line1")
+                lines = [x for x in cam.dup_available_trigger_sources() if x.startswith("Line")]
+                if not lines:
+                    raise DeviceError(f"{self.uri}: trigger hardware: the camera has no trigger input line "
+                                      f"(it offers {', '.join(cam.dup_available_trigger_sources()) or 'none'})")
+                # Line1 is the opto-isolated input on most GigE cameras; otherwise the first line offered.
+                cam.set_trigger("Line1" if "Line1" in lines else lines[0])
             step = "fps"
             if s.fps and s.trigger == "free":
                 cam.set_frame_rate(s.fps)

@@ -128,6 +128,20 @@ def test_pixel_formats_are_converted(fake_camera: FakeCamera, fmt: str, dtype: t
     assert f.image.dtype == dtype and f.image.ndim == ndim and f.image.shape[:2] == (96, 128)
 
 
+def test_software_and_hardware_triggers(fake_camera: FakeCamera) -> None:
+    with open_source("aravis:127.0.0.1?trigger=software&timeout_s=1") as src:
+        seqs = []
+        for _ in range(3):
+            seqs.append(src.read().seq)
+            time.sleep(0.15)     # free running at 25 fps, ~4 frames would pass meanwhile
+    assert seqs == [seqs[0], seqs[0] + 1, seqs[0] + 2]   # one frame per trigger, none in between
+    with open_source("aravis:127.0.0.1?trigger=hardware&timeout_s=0.4") as src:
+        t0 = time.monotonic()
+        with pytest.raises(DeviceError, match=r"no frame within 0.4 s .*waiting for a trigger"):
+            src.read()           # no pulse on Line1: a clear error after the timeout
+        assert time.monotonic() - t0 < 1.5
+
+
 def test_close_releases_the_camera_for_the_next_user(fake_camera: FakeCamera) -> None:
     for _ in range(2):   # the second open needs the control channel the first one held
         with open_source("aravis:127.0.0.1?fps=50") as src:
