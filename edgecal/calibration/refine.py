@@ -333,6 +333,8 @@ def calibration_from_result(kind: str, image_size: tuple[int, int], corners: lis
     cal = Calibration(kind, (int(image_size[0]), int(image_size[1])), result.cameras, camera_std,
                       result.view_poses, corners, residuals, inliers, result.rms_px, result.sigma_px,
                       dropped=list(result.dropped))
+    cal.view_pose_std = [np.array([result.std_of(f"view{v}.{n}") for n in POSE_NAMES])
+                         for v in range(len(result.view_poses))]
     if n_cams == 2:
         rig = result.rig_poses[0]
         cal.rotation = rig.rotation

@@ -38,6 +38,17 @@ def format_summary(cal: Calibration) -> str:
             lines.append(f"{' ' * len(name)}  start: " + ", ".join(
                 f"{m} (linear {info[f'{m}_linear_rms_px']:.3f} px, refined {info[f'{m}_refined_rms_px']:.3f} px)"
                 for m in starts) + f"; kept {chosen}")
+    if cal.kind.startswith("box") and cal.view_poses:
+        # The extrinsics of Table 2: where the box is in each camera.
+        pose, std = cal.view_poses[0], (cal.view_pose_std[0] if cal.view_pose_std else np.full(6, np.nan))
+        lines.append(f"box in {cal.camera_names[0]} camera: t (mm) " + ", ".join(
+            _pm(v, s, ".2f") for v, s in zip(np.ravel(pose.tvec), std[3:])) + "; rotation vector (deg) " + ", ".join(
+            _pm(np.degrees(v), np.degrees(s), ".3f") for v, s in zip(np.ravel(pose.rvec), std[:3])))
+        if cal.is_stereo:
+            t_r = cal.rotation @ np.ravel(pose.tvec) + np.ravel(cal.translation_mm)
+            r_r = cv2.Rodrigues(cal.rotation @ pose.rotation)[0].ravel()
+            lines.append("box in right camera: t (mm) " + ", ".join(f"{v:.2f}" for v in t_r)
+                         + "; rotation vector (deg) " + ", ".join(f"{np.degrees(v):.3f}" for v in r_r))
     if cal.is_stereo:
         om = cv2.Rodrigues(cal.rotation)[0].ravel()
         t, ts = np.ravel(cal.translation_mm), np.ravel(cal.translation_std_mm)

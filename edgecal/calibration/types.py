@@ -120,6 +120,7 @@ class Calibration:
     notes: list[str] = field(default_factory=list)
     init: dict[str, dict[str, float]] = field(default_factory=dict)  # camera -> method -> RMS after refinement
     view_index: list[int] = field(default_factory=list)  # input image (pair) of each view, planar case
+    view_pose_std: list[np.ndarray] = field(default_factory=list)  # per view: std of rx ry rz (rad), tx ty tz (mm)
 
     @property
     def is_stereo(self) -> bool:
