@@ -216,6 +216,7 @@ class AravisSource(Source):
             raise DeviceError(f"{self.uri}: pixel format {self._pixel_format} is not supported "
                               f"(set pixel_format to one of {', '.join(_FORMATS)})")
         _, _, self._width, self._height = cam.get_region()
+        self.info["packet_size"] = int(cam.gv_get_packet_size()) if cam.is_gv_device() else None
         self._read_controls()
 
     def _read_controls(self) -> None:

@@ -93,10 +93,11 @@ def fake_camera(gv_lock: None) -> Iterator[FakeCamera]:
 
 
 def test_stream_from_the_fake_gige_camera(fake_camera: FakeCamera) -> None:
-    with open_source("aravis:127.0.0.1?fps=50&width=320&height=240&timeout_s=2") as src:
+    with open_source("aravis:127.0.0.1?fps=50&width=320&height=240&timeout_s=2&packet_size=1000") as src:
         frames = [src.read() for _ in range(8)]
         info = src.describe()
     assert info["device"]["device_id"] == "EDGECAL" and info["pixel_format"] == "Mono8"
+    assert info["device"]["packet_size"] == 1000    # ~80 GVSP packets per frame, reassembled
     assert all(f.image.shape == (240, 320) and f.image.dtype == np.uint8 for f in frames)
     assert all(f.image.std() > 0 for f in frames)               # a real test pattern, not zeros
     stamps = np.array([f.stamp_ns for f in frames])
