@@ -91,3 +91,23 @@ def test_monte_carlo_reported_std_matches_spread():
                   cam.dist_coeffs[0], pose.rvec, pose.tvec]
     bias = np.abs(np.mean(values, axis=0) - truth)
     assert np.all(bias < 4 * spread / np.sqrt(100) + 0.05 * spread), dict(zip(res.names, bias / spread))
+
+
+def test_monte_carlo_stereo_baseline_std_matches_spread():
+    """The reported σ of the left->right translation matches its spread over noisy trials."""
+    cl, cr, pl, rig = stereo_truth()
+    pr = Pose.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
+    t = box_target(inner_corners=(3, 4), square_mm=20.0)
+    el, er = project_target(t, cl, pl, SIZE), project_target(t, cr, pr, SIZE)
+    rng = np.random.default_rng(7)
+    opts = RefineOptions(distortion="k1", outlier_sigmas=50.0)
+    start = [Camera(cl.camera_matrix, np.zeros(5)), Camera(cr.camera_matrix, np.zeros(5))]
+    ts, stds = [], []
+    for _ in range(60):
+        obs = [Observation(0, 0, el.object_mm, el.image_px + rng.normal(0, 0.2, el.image_px.shape)),
+               Observation(1, 0, er.object_mm, er.image_px + rng.normal(0, 0.2, er.image_px.shape))]
+        res = refine(obs, start, [pl], [rig], options=opts)
+        ts.append(res.rig_poses[0].tvec)
+        stds.append([res.std_of(f"rig1.{n}") for n in ("tx", "ty", "tz")])
+    ratio = np.std(ts, axis=0) / np.mean(stds, axis=0)
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
