@@ -33,15 +33,20 @@ from edgecal.synth.view import render_view  # noqa: E402
 from edgecal.targets import planar_target  # noqa: E402
 
 
-def timed(fn: Callable[[int], object], repeat: int) -> tuple[float, float]:
-    """Median and p90 in ms of fn(k) for k = 1..repeat, after one warm-up call fn(0)."""
+def timed(fn: Callable[[int], object], repeat: int) -> tuple[float, float, float]:
+    """Median and p90 wall ms, and median CPU ms, of fn(k) for k = 1..repeat, after a warm-up call fn(0).
+
+    CPU time (this process only) is what the render costs; wall time also counts waiting for a core on
+    a shared machine.
+    """
     fn(0)
-    ms = []
+    ms, cpu = [], []
     for k in range(1, repeat + 1):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn(k)
         ms.append((time.perf_counter() - t0) * 1e3)
-    return float(np.median(ms)), float(np.percentile(ms, 90))
+        cpu.append((time.process_time() - c0) * 1e3)
+    return float(np.median(ms)), float(np.percentile(ms, 90)), float(np.median(cpu))
 
 
 def opencv_reference(size: tuple[int, int], cols: int, rows: int, square_px: float, H: np.ndarray) -> np.ndarray:
@@ -65,7 +70,7 @@ def main() -> int:
     args = ap.parse_args()
     cv2.setNumThreads(1)
     n = args.repeat
-    rows: list[tuple[str, float, float]] = []
+    rows: list[tuple[str, float, float, float]] = []
     for size in ((640, 480), (1280, 800)):
         tag = f"{size[0]}x{size[1]}"
         rows.append((f"planar_view {tag} (new camera, clutter, normal)",
@@ -106,9 +111,10 @@ def main() -> int:
     rows.append(("  part: ground truth", *timed(lambda k: board_truth(cam, panels, R, t), n)))
 
     width = max(len(r[0]) for r in rows)
-    print(f"{'what':<{width}}  {'median ms':>9}  {'p90 ms':>8}")
-    for name, med, p90 in rows:
-        print(f"{name:<{width}}  {med:9.1f}  {p90:8.1f}")
+    print(f"# load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"{'what':<{width}}  {'median ms':>9}  {'p90 ms':>8}  {'CPU ms':>7}")
+    for name, med, p90, cpu in rows:
+        print(f"{name:<{width}}  {med:9.1f}  {p90:8.1f}  {cpu:7.1f}")
     return 0
 
 
