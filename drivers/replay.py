@@ -4,7 +4,9 @@
 
 * a folder with ``manifest.json``: an edgecal recording (mono or stereo), replayed bit-exact (pixels and
   ``stamp_ns``; ``recv_ns`` is the replay's own delivery time);
-* a folder with ``left/`` and ``right/`` image folders: a stereo sequence, paired by sorted file order;
+* a folder with ``left/`` and ``right/`` image folders: a stereo sequence, paired by sorted file order
+  and stamped at ``fps`` - or, for a rendered sequence with a ``truth.json`` frame list
+  (``edgecal render robot``), paired and stamped as that list says;
 * a folder of images: one frame per image in name order, stamped at ``fps`` (default 30);
 * a video file: one frame per decoded frame, stamped at the file's frame rate.
 
@@ -15,6 +17,7 @@ increasing (shifted by the length of the sequence), so only the first pass is bi
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +33,8 @@ from edgecal.errors import DeviceError, InputError
 from edgecal.images import IMAGE_SUFFIXES
 
 DEFAULT_FPS = 30.0
+# A rendered stereo sequence's ground truth (edgecal.synth), whose frames carry their capture stamps.
+SYNTH_TRUTH = "truth.json"
 
 
 @dataclass(frozen=True)
@@ -248,6 +253,29 @@ class StereoReplaySource(StereoSource):
         self._seq = None
 
 
+def _synth_sequence(path: Path, spec: SourceSpec) -> list[tuple[ReplayItem, ReplayItem]] | None:
+    """Pairs with the capture stamps of a rendered sequence's truth.json (``edgecal render robot``), if any.
+
+    The renderer knows when each pair was "captured"; replaying with its stamps lets the live loop's
+    output be compared with the ground truth frame by frame.
+    """
+    truth = path / SYNTH_TRUTH
+    if not truth.is_file():
+        return None
+    try:
+        data = json.loads(truth.read_text(encoding="utf-8"))
+        entries = data["frames"]
+        pairs = []
+        for i, e in enumerate(entries):
+            stamp, seq = int(e["stamp_ns"]), int(e.get("index", i))
+            pairs.append((ReplayItem(path / e["left"], stamp, seq, f"{spec.camera_id}#left"),
+                          ReplayItem(path / e["right"], stamp, seq, f"{spec.camera_id}#right")))
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{truth}: cannot read the sequence's frame list ({exc}); remove it to replay the "
+                         "left/ and right/ images at a nominal rate") from None
+    return pairs or None
+
+
 def open_replay(spec: SourceSpec) -> Source:
     """The replay Source for ``spec.target`` (see the module docstring for what PATH may be)."""
     path = Path(spec.target).expanduser()
@@ -267,6 +295,9 @@ def open_replay(spec: SourceSpec) -> Source:
             return StereoReplaySource(spec, list(zip(lefts, rights)), m.get("source"))
         return ReplaySource(spec, _items_from_entries(m["frames"], path, cid), description=m.get("source"))
     if (path / "left").is_dir() and (path / "right").is_dir():
+        stamped = _synth_sequence(path, spec)
+        if stamped is not None:
+            return StereoReplaySource(spec, stamped)
         lf, rf = image_files(path / "left"), image_files(path / "right")
         if not lf or not rf:
             raise InputError(f"{path}: left/ and right/ must both hold images")

@@ -140,3 +140,21 @@ def test_replay_errors_name_the_path(tmp_path: Path) -> None:
         src.read()
     with pytest.raises(DeviceError, match="before open"):
         open_source(f"replay:{tmp_path / 'junk'}").read()
+
+
+def test_rendered_sequence_replays_with_its_truth_stamps(tmp_path: Path) -> None:
+    # The layout `edgecal render robot` writes: left/, right/ and truth.json listing each pair's stamp.
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+    frames = []
+    for i, stamp in enumerate([0, 33_000_000, 67_500_000]):
+        for side, off in (("left", 0), ("right", 10)):
+            cv2.imwrite(str(tmp_path / side / f"{i:06d}.png"), render_frame(i + off))
+        frames.append({"index": i, "stamp_ns": stamp, "left": f"left/{i:06d}.png", "right": f"right/{i:06d}.png"})
+    (tmp_path / "truth.json").write_text(json.dumps({"format": "edgecal-synth-robot/1", "fps": 30.0,
+                                                    "frames": frames}))
+    with open_source(f"replay:{tmp_path}?pace=fast") as src:
+        pairs = list(src)
+    assert [p.left.stamp_ns for p in pairs] == [0, 33_000_000, 67_500_000]
+    assert all(p.skew_ns == 0 for p in pairs) and [p.right.seq for p in pairs] == [0, 1, 2]
+    assert np.array_equal(pairs[1].right.image, render_frame(11))
