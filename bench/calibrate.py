@@ -15,7 +15,8 @@ edgecal.detect finds the corners and calibration.assign labels them. Two corner 
 
 and printed as medians over pairs x draws: focal error (%), principal point error (px), k1 error,
 rotation error (deg), baseline error (mm), reprojection RMS (px), 3-D reconstruction error (mm, mean
-over corners, as the paper's Table 2), time (ms) and the ratio OpenCV / edgecal. For edgecal also the
+over corners, as the paper's Table 2), CPU time (ms; process time, single thread, so a loaded machine
+does not inflate it) and the ratio OpenCV / edgecal. For edgecal also the
 z-scores |error| / reported std of fx and of T (honest std: median z ~ 0.67), and Tsai vs DLT starts.
 
 Real sets (skipped when ../shared/data is absent): opencv_stereo_9x6 (planar multi-view, edgecal's
@@ -107,9 +108,9 @@ def _score(cams: list[Camera], r: np.ndarray, t: np.ndarray, box_pose: Pose, rms
 
 
 def run_edgecal(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: dict, options: RefineOptions) -> dict:
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     cal = calibrate_box_stereo(left, right, size, options)
-    ms = 1e3 * (time.perf_counter() - t0)
+    ms = 1e3 * (time.process_time() - t0)
     s = _score(cal.cameras, cal.rotation, cal.translation_mm, cal.view_poses[0], cal.rms_px, truth, left, right, ms)
     s["z_fx"] = float(abs(cal.cameras[0].camera_matrix[0, 0] - truth["left"].camera_matrix[0, 0]) / cal.camera_std[0]["fx"])
     s["z_T"] = float(np.mean(np.abs(cal.translation_mm - truth["T"]) / cal.translation_std_mm))
@@ -121,7 +122,7 @@ def run_edgecal(left: CornerSet, right: CornerSet, size: tuple[int, int], truth:
 
 
 def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: dict, distortion: str) -> dict:
-    t0 = time.perf_counter()
+    t0 = time.process_time()
     flags = opencv_flags(distortion) | cv2.CALIB_USE_INTRINSIC_GUESS
     cams, poses = [], []
     for cs in (left, right):
@@ -139,7 +140,7 @@ def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: 
                                       flags=opencv_flags(distortion) | cv2.CALIB_USE_INTRINSIC_GUESS)
     rms, k1, d1, k2, d2, rot, t = out[:7]
     rvecs, tvecs = out[9], out[10]
-    ms = 1e3 * (time.perf_counter() - t0)
+    ms = 1e3 * (time.process_time() - t0)
     cams = [Camera(k1, np.ravel(d1)[:5]), Camera(k2, np.ravel(d2)[:5])]
     return _score(cams, rot, np.ravel(t), Pose(np.ravel(rvecs[0]), np.ravel(tvecs[0])), rms, truth, left, right, ms)
 

@@ -209,7 +209,7 @@ def _levenberg_marquardt(fun: Callable[[np.ndarray, bool], tuple[np.ndarray, np.
                 ok, step = cv2.solve(a + lam * np.diag(d), -g.reshape(-1, 1), flags=cv2.DECOMP_SVD)
             step = step.ravel()
             x_new = x + step
-            r_new = fun(x_new, False)[0]
+            r_new, jac_new = fun(x_new, True)  # the Jacobian comes almost free with the residuals
             cost_new = cost_and_weights(r_new)[0] if np.all(np.isfinite(r_new)) else np.inf
             if cost_new < cost:
                 improved = True
@@ -219,8 +219,7 @@ def _levenberg_marquardt(fun: Callable[[np.ndarray, bool], tuple[np.ndarray, np.
         if not improved:
             break  # no step lowers the cost: at the minimum (to rounding)
         small = (cost - cost_new) <= 1e-12 * max(cost, 1e-300) or np.linalg.norm(step) <= 1e-12 * (np.linalg.norm(x) + 1e-12)
-        x = x_new
-        r, jac = fun(x, True)
+        x, r, jac = x_new, r_new, jac_new
         cost, w = cost_and_weights(r)
         if small:
             break
