@@ -7,7 +7,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 # Debian packages the tests need (the Aravis fake camera, libdc1394, systemd-analyze, PyGObject's build deps).
-SYSTEM_PACKAGES ?= aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config libdc1394-25
+SYSTEM_PACKAGES ?= aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config libdc1394-25 systemd
 
 .PHONY: demo test bench system-deps clean
 

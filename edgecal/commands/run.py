@@ -8,6 +8,7 @@ SIGTERM/SIGINT stop it cleanly; SIGHUP reloads the config file (a broken file is
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import os
 import signal
@@ -51,4 +52,11 @@ def run(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, lambda *_: loop.request_stop())
     signal.signal(signal.SIGINT, lambda *_: loop.request_stop())
     signal.signal(signal.SIGHUP, lambda *_: loop.request_reload())
-    return loop.run()
+    faulthandler.register(signal.SIGUSR1)      # `kill -USR1` prints every thread's stack: a hang is diagnosable
+    code = loop.run()
+    # The camera and the socket are released and the logs written by now. Skip the interpreter's own
+    # teardown: native libraries' finalizers take seconds on a loaded machine, and systemd expects the
+    # service gone within a second of SIGTERM.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)

@@ -9,7 +9,6 @@ so a signal never interrupts a frame half-way.
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
@@ -39,15 +38,15 @@ def default_source_factory(spec: SourceSpec) -> Source:
     return open_source(spec)
 
 
-def capture_time_ns(frame: StereoFrame, now_ns: int) -> tuple[int, str]:
+def capture_time_ns(frame: StereoFrame, now_ns: int, recorded: bool) -> tuple[int, str]:
     """The host-monotonic time the pair was captured, and what it is based on.
 
-    Device stamps mapped to CLOCK_MONOTONIC are used as they are ("capture"); a replay's recorded
-    stamps (or an unmapped device clock) are on another time base, so the time the frame reached
-    edgecal is used instead ("receive").
+    Device stamps mapped to CLOCK_MONOTONIC are used as they are ("capture"). A replay's stamps are the
+    recorded ones (``recorded``), and a device clock that was not mapped is far from now; for both, the
+    time the frame reached edgecal is used instead ("receive").
     """
     stamp = frame.stamp_ns
-    if 0 <= now_ns - stamp < CLOCK_PLAUSIBLE_NS:
+    if not recorded and 0 <= now_ns - stamp < CLOCK_PLAUSIBLE_NS:
         return stamp, "capture"
     return min(frame.left.recv_ns, frame.right.recv_ns), "receive"
 
@@ -75,8 +74,11 @@ class LiveLoop:
         self.notifier = notifier or SystemdNotifier()
         self.stats = LoopStats(time.monotonic_ns())
         self.state = "starting"
-        self._stop = threading.Event()
-        self._reload = threading.Event()
+        # Plain flags, not threading.Event: a signal handler that takes a lock the interrupted loop
+        # already holds would deadlock.
+        self._stop_requested = False
+        self._stop_requested_ns = 0
+        self._reload_requested = False
         self._source: Source | None = None
         self._publisher: PosePublisher | None = None
         self._pool: ThreadPoolExecutor | None = None
@@ -92,11 +94,12 @@ class LiveLoop:
 
     def request_stop(self) -> None:
         """Ask the loop to stop after the current frame (safe from a signal handler)."""
-        self._stop.set()
+        self._stop_requested = True
+        self._stop_requested_ns = time.monotonic_ns()
 
     def request_reload(self) -> None:
         """Ask the loop to reload its config file before the next frame (safe from a signal handler)."""
-        self._reload.set()
+        self._reload_requested = True
 
     # -- the loop ----------------------------------------------------------------------------------------
 
@@ -106,9 +109,10 @@ class LiveLoop:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
         log.info("publishing on %s; source %s", self.config.publish.endpoint, self.config.source.uri)
         try:
-            while not self._stop.is_set():
-                if self._reload.is_set():
-                    self._reload.clear()
+            self._warm_up()
+            while not self._stop_requested:
+                if self._reload_requested:
+                    self._reload_requested = False
                     self._do_reload()
                 now = time.monotonic_ns()
                 if now >= self._next_status_ns:
@@ -127,12 +131,23 @@ class LiveLoop:
                 self._report(time.monotonic_ns())
                 self._publisher.close()
             self._pool.shutdown(wait=True)
-            log.info("stopped after %d frames", self.stats.frames)
+            took = f" ({(time.monotonic_ns() - self._stop_requested_ns) / 1e6:.0f} ms after the stop request)" \
+                if self._stop_requested_ns else ""
+            log.info("stopped after %d frames%s", self.stats.frames, took)
+
+    def _warm_up(self) -> None:
+        """Run the detector once on a blank image so numba's compilation (or cache load) is not paid by
+        the first camera frame, whose latency would otherwise be seconds."""
+        w, h = self.config.cameras.image_size
+        t0 = time.monotonic()
+        edgecal.detect(np.full((min(h, 240) or 240, min(w, 320) or 320), 128, np.uint8), self.config.target,
+                       self.config.detector)
+        log.info("detector ready (%.1f s)", time.monotonic() - t0)
 
     def _try_open(self, now: int) -> None:
         """Open the source when its back-off has passed; otherwise wait (a slice at a time)."""
         if now < self._next_open_ns:
-            self._stop.wait(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
+            time.sleep(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
             return
         spec = self.config.source
         source = None
@@ -188,7 +203,7 @@ class LiveLoop:
             if silent_s > self.config.loop.camera_lost_after_s:
                 self._camera_lost(str(exc))
             elif time.monotonic_ns() - t_read < 10**6:
-                self._stop.wait(0.02)            # the error came at once (a dead capture thread): don't spin
+                time.sleep(0.02)                 # the error came at once (a dead capture thread): don't spin
             return True
         if frame is None:
             if self.config.loop.stop_at_end:
@@ -235,7 +250,7 @@ class LiveLoop:
             self._rate_limited_error(f"corrupt frame {frame.left.seq}: {problem}")
             pose = Pose.invalid(f"corrupt frame: {problem}")
         now = time.monotonic_ns()
-        capture_ns, _basis = capture_time_ns(frame, now)
+        capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver == "replay")
         assert self._publisher is not None
         msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now)
         msg["latency_ns"] = int(now - capture_ns)

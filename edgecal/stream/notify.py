@@ -21,6 +21,8 @@ class SystemdNotifier:
             # An abstract-namespace socket is written with a leading '@' and addressed with a NUL.
             self._addr = "\0" + addr[1:] if addr.startswith("@") else addr
             self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+            # A full receive queue on the other end must never stall the loop: drop the message instead.
+            self._sock.setblocking(False)
 
     @property
     def enabled(self) -> bool:
@@ -28,7 +30,7 @@ class SystemdNotifier:
         return self._sock is not None
 
     def notify(self, *lines: str) -> bool:
-        """Send ``lines`` as one message; False when disabled or the send failed (never raises)."""
+        """Send ``lines`` as one message; False when disabled or the send failed (never raises, never blocks)."""
         if self._sock is None or self._addr is None:
             return False
         try:

@@ -1,0 +1,156 @@
+"""`edgecal run` as a daemon, in a subprocess: sd_notify, SIGHUP reload, SIGTERM, bad config."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from live_fixtures import free_endpoint, render_robot, write_config
+from test_stream import Subscriber
+
+N_FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("robot")
+    render_robot(folder, N_FRAMES, seed=5)
+    return folder
+
+
+class NotifySocket:
+    """The receiving end of $NOTIFY_SOCKET, read continuously as systemd does."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = str(path)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(self.path)
+        self.sock.settimeout(0.05)
+        self.received: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.received.append(self.sock.recv(4096).decode())
+            except socket.timeout:
+                pass
+
+    def wait_for(self, line: str, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if any(line in m.splitlines() for m in list(self.received)):
+                return True
+            time.sleep(0.02)
+        return False
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+
+
+def start(config: Path, notify: NotifySocket, log: Path) -> subprocess.Popen:
+    env = {**os.environ, "NOTIFY_SOCKET": notify.path, "NUMBA_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(config)], env=env,
+                            stdout=log.open("wb"), stderr=subprocess.STDOUT)
+
+
+def test_notify_reload_and_sigterm(sequence: Path, tmp_path: Path) -> None:
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", sequence, endpoint, source_extra={"loop": True})
+    good = yaml.safe_load(cfg.read_text())
+    notify = NotifySocket(tmp_path / "notify.sock")
+    try:
+        _run_daemon(cfg, good, notify, endpoint, tmp_path)
+    finally:
+        notify.close()
+
+
+def _run_daemon(cfg: Path, good: dict, notify: NotifySocket, endpoint: str, tmp_path: Path) -> None:
+    sub = Subscriber(endpoint)
+    log = tmp_path / "run.log"
+    proc = start(cfg, notify, log)
+    try:
+        assert notify.wait_for("READY=1", 90), log.read_text()
+        assert notify.wait_for("WATCHDOG=1", 5)
+        assert sub.wait_for(lambda: len(sub.of("pose")) >= 2, 20)
+        assert all(m["valid"] for m in sub.of("pose")), sub.of("pose")[0]["reason"]
+
+        # SIGHUP with a broken config: logged, reported on the status, the old config keeps running.
+        cfg.write_text(yaml.safe_dump({**good, "pose": {"max_rms_px": "small"}}))
+        proc.send_signal(signal.SIGHUP)
+        assert sub.wait_for(lambda: any("reload failed" in (m.get("message") or "") for m in sub.of("status")), 10)
+        n = len(sub.of("pose"))
+        assert sub.wait_for(lambda: len(sub.of("pose")) >= n + 2, 10)
+        assert proc.poll() is None
+        assert all(m["valid"] for m in sub.of("pose")[n:])
+
+        # SIGHUP with a good config that tightens a bound: takes effect, the camera is not reopened.
+        cfg.write_text(yaml.safe_dump({**good, "pose": {"max_rms_px": 1e-6}}))
+        proc.send_signal(signal.SIGHUP)
+        assert sub.wait_for(lambda: any("max_rms_px" in m["reason"] for m in sub.of("pose")), 10), log.read_text()
+        assert sub.wait_for(lambda: len(sub.of("status")) > 0 and sub.of("status")[-1]["message"] == "", 5)
+        assert sub.of("status")[-1]["reconnects"] == 0 and sub.of("status")[-1]["reload_failures"] == 1
+
+        # SIGTERM: a clean exit within a second, socket closed.
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(10)
+        elapsed = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sub.close()
+    text = log.read_text()
+    assert code == 0, text
+    assert elapsed < 1.5, f"SIGTERM took {elapsed:.2f} s"
+    assert notify.wait_for("STOPPING=1", 1)
+    assert "reload failed, keeping the running config" in text and "field 'pose.max_rms_px'" in text
+    assert "stopped after" in text and "Traceback" not in text
+    # The port is free again: a new publisher can bind it.
+    from edgecal.publish import PosePublisher
+    PosePublisher(endpoint).close()
+
+
+def test_bad_config_fails_before_opening_any_device(sequence: Path, tmp_path: Path) -> None:
+    """A wrong field: one line naming it, exit 2; the absent camera is never touched (that would be exit 3)."""
+    cfg = write_config(tmp_path / "live.yaml", sequence, free_endpoint())
+    doc = yaml.safe_load(cfg.read_text())
+    doc["source"] = {"uri": "v4l2:/dev/video-edgecal-absent"}
+    doc["pose"] = {"min_corners": 2}
+    cfg.write_text(yaml.safe_dump(doc))
+    res = subprocess.run([sys.executable, "-m", "edgecal", "run", "--config", str(cfg)], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2
+    assert res.stderr.strip().count("\n") == 0
+    assert "field 'pose.min_corners' must be at least 3" in res.stderr
+    missing = subprocess.run([sys.executable, "-m", "edgecal", "run", "--config", str(tmp_path / "none.yaml")],
+                             capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 2 and "config file not found" in missing.stderr
+
+
+def test_notify_never_blocks_on_a_full_socket(tmp_path: Path) -> None:
+    from edgecal.stream.notify import SystemdNotifier
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(str(tmp_path / "n.sock"))            # bound, never read: its queue fills up
+    notifier = SystemdNotifier(str(tmp_path / "n.sock"))
+    t0 = time.monotonic()
+    results = [notifier.watchdog() for _ in range(5000)]
+    assert time.monotonic() - t0 < 5.0
+    assert results[0] and not all(results)
+    notifier.close()
+    server.close()
+    assert not SystemdNotifier("").enabled and SystemdNotifier("").ready() is False
