@@ -1,0 +1,64 @@
+"""A camera that unplugs mid-run (the Aravis GigE fake camera killed and restarted): the loop keeps
+publishing status while it reopens the camera with back-off, then publishes poses again."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from edgecal.stream import LiveLoop, load_live_config
+from live_fixtures import free_endpoint, write_rig_yaml
+from test_drivers_aravis import FakeCamera, gv_lock  # noqa: F401  (gv_lock is a fixture)
+from test_stream import Subscriber
+
+
+def small_rig(path: Path) -> Path:
+    """A 320x240 stereo rig (the fake cameras' size); its numbers only have to be a valid calibration."""
+    K = [[300.0, 0, 160.0], [0, 300.0, 120.0], [0, 0, 1]]
+    cam = {"K": K, "dist": [0, 0, 0, 0, 0], "image_size": [320, 240]}
+    return write_rig_yaml({"left": cam, "right": cam, "R_right_left": np.eye(3).tolist(),
+                           "T_right_left_mm": [-75.0, 0, 0]}, path)
+
+
+def test_camera_unplug_and_return(gv_lock: None, tmp_path: Path) -> None:  # noqa: F811
+    endpoint = free_endpoint()
+    cam = {"width": 320, "height": 240, "fps": 30, "timeout_s": 0.5}
+    cfg = tmp_path / "live.yaml"
+    cfg.write_text(yaml.safe_dump({
+        "source": {"stereo": {"left": {"uri": "aravis:127.0.0.1", **cam}, "right": {"uri": "aravis:fake", **cam},
+                              "max_skew_ms": 40, "timeout_s": 0.5}},
+        "rig": str(small_rig(tmp_path / "rig.yaml")),
+        "target": "targets/robot-3boards.yaml",
+        "publish": {"endpoint": endpoint},
+        "loop": {"status_period_s": 0.2, "camera_lost_after_s": 0.5, "reconnect_min_s": 0.2, "reconnect_max_s": 0.5},
+    }))
+    fake = FakeCamera()
+    sub = Subscriber(endpoint)
+    loop = LiveLoop(load_live_config(cfg))
+    th = threading.Thread(target=loop.run)
+    th.start()
+    try:
+        assert sub.wait_for(lambda: len(sub.of("pose")) >= 3, 30)
+        # No board in the fake camera's test pattern: a normal, invalid pose, not an error.
+        assert all(not m["valid"] for m in sub.of("pose"))
+        fake.kill()
+        assert sub.wait_for(lambda: any(m["state"] == "camera-lost" for m in sub.of("status")), 10)
+        n_status = len(sub.of("status"))
+        n_pose = len(sub.of("pose"))
+        assert sub.wait_for(lambda: len(sub.of("status")) >= n_status + 3, 5)   # status keeps coming
+        fake = FakeCamera()
+        assert sub.wait_for(lambda: sub.of("status")[-1]["state"] == "running"
+                            and sub.of("status")[-1]["reconnects"] >= 1, 30)
+        assert sub.wait_for(lambda: len(sub.of("pose")) >= n_pose + 3, 10)
+    finally:
+        loop.request_stop()
+        th.join(10)
+        fake.kill()
+        sub.close()
+    assert not th.is_alive()
+    lost = [m for m in sub.of("status") if m["state"] == "camera-lost"]
+    assert lost and all(m["message"] for m in lost)
+    assert loop.stats.errors == 0
