@@ -17,8 +17,8 @@ from edgecal import cli
 from edgecal.synth.camera import CameraModel, look_at, rotation_about, undistort_normalized
 from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
 from edgecal.synth.render import Panel, board_panel_extent, panels_from_target, render_radiance
-from edgecal.synth.scenes import (box_stereo, hard_view, multi_view, negative_view, planar_view, random_camera,
-                                  robot_sequence, robot_target)
+from edgecal.synth.scenes import (box_stereo, hard_view, multi_view, negative_view, occluded_view, partial_view,
+                                  planar_view, random_camera, robot_sequence, robot_target)
 from edgecal.synth.truth import GT_FORMAT
 from edgecal.synth.view import render_view
 from edgecal.targets import planar_target
@@ -116,13 +116,12 @@ def test_render_equals_exact_box_filtered_board() -> None:
     assert np.median(err[straight]) < 1e-3  # straight edges are integrated exactly
 
 
-def test_colour_convention_and_saddles_at_truth() -> None:
-    """Around every true corner the quadrants alternate, with black on the -x,-y side of corner (0, 0)."""
-    view = planar_view(2, size=(640, 480), cols=6, rows=5, square_px=36.0, tilt_max_deg=40.0,
-                       photometric=CLEAN, background="uniform", distortion="strong")
+def _check_saddles(view, min_contrast: float = 100.0) -> int:
+    """Around every listed corner with listed right and lower neighbours the four quadrants alternate,
+    black on the -x,-y side when col + row is even; returns how many corners were checked."""
     img = view.image.astype(np.float32)
-    ids, px = view.ids(), view.corners()
-    by_id = {tuple(i): p for i, p in zip(ids.tolist(), px)}
+    by_id = {tuple(i): p for i, p in zip(view.ids().tolist(), view.corners())}
+    checked = 0
     for (c, r), p in by_id.items():
         if (c + 1, r) not in by_id or (c, r + 1) not in by_id:
             continue
@@ -133,15 +132,22 @@ def test_colour_convention_and_saddles_at_truth() -> None:
             for sv in (-1, 1):
                 q = p + su * du + sv * dv
                 quad[(su, sv)] = float(cv2.getRectSubPix(img, (1, 1), (float(q[0]), float(q[1])))[0, 0])
-        dark = min(quad.values())
-        light = max(quad.values())
-        assert light - dark > 100
+        assert max(quad.values()) - min(quad.values()) > min_contrast, (c, r, quad)
         on_diag = [quad[(-1, -1)], quad[(1, 1)]]
         off_diag = [quad[(1, -1)], quad[(-1, 1)]]
         if (c + r) % 2 == 0:  # cell (c-1, r-1) is black exactly when c + r is even
             assert max(on_diag) < min(off_diag), (c, r, quad)
         else:
             assert min(on_diag) > max(off_diag), (c, r, quad)
+        checked += 1
+    return checked
+
+
+def test_colour_convention_and_saddles_at_truth() -> None:
+    """Around every true corner the quadrants alternate, with black on the -x,-y side of corner (0, 0)."""
+    view = planar_view(2, size=(640, 480), cols=6, rows=5, square_px=36.0, tilt_max_deg=40.0,
+                       photometric=CLEAN, background="uniform", distortion="strong")
+    assert _check_saddles(view) == 5 * 4
 
 
 def test_rendered_corners_are_point_symmetric_at_truth() -> None:
@@ -292,6 +298,21 @@ def test_hard_and_multi_views() -> None:
     assert len(boards) >= 2 and all(b["complete"] for b in boards)
     grids = {(b["cols"], b["rows"]) for b in boards}
     assert len(grids) == len(boards)  # different sizes
+
+
+def test_partial_and_occluded_views() -> None:
+    for seed in range(2):
+        part = partial_view(seed, size=(480, 360), photometric=CLEAN)
+        (b,) = part.truth["boards"]
+        assert not b["complete"] and 0.3 <= b["n_visible"] / b["n_total"] <= 0.9
+        c = part.corners()
+        assert c.min() >= 3.5 and c[:, 0].max() <= 480 - 4.5 and c[:, 1].max() <= 360 - 4.5
+        assert _check_saddles(part, 60.0) > 0
+        occ = occluded_view(seed, size=(480, 360), photometric=CLEAN)
+        (b,) = occ.truth["boards"]
+        assert not b["complete"] and 0 < b["n_visible"] < b["n_total"]
+        # No listed corner lies under the plate: each is still a clean saddle.
+        assert _check_saddles(occ, 60.0) > 0
 
 
 def test_box_stereo_pair_truth_is_consistent() -> None:

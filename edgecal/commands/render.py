@@ -1,6 +1,7 @@
 """``edgecal render SCENE --out DIR``: render synthetic images with exact ground truth.
 
-Scenes: planar, hard, multi, negative (PNG + JSON per image), box (stereo pairs of the calibration box:
+Scenes: planar, hard, partial (cut by the image border), occluded (a plate in front), multi, negative
+(PNG + JSON per image), box (stereo pairs of the calibration box:
 _L/_R images and a _pair.json), robot (a stereo sequence: left/, right/ and truth.json; --count frames).
 The JSON is the "edgecal-synth-gt/1" format of docs/synth.md.
 """
@@ -13,7 +14,7 @@ import time
 
 from edgecal.errors import InputError
 
-SCENES = ("planar", "hard", "multi", "negative", "box", "robot")
+SCENES = ("planar", "hard", "partial", "occluded", "multi", "negative", "box", "robot")
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -57,8 +58,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--size", type=_size, default=None,
                    help="image size WIDTHxHEIGHT (default 640x480; box, robot and multi 1280x800)")
     p.add_argument("--square-px", type=_square_px, default=None,
-                   help="square size in pixels, PX or MIN:MAX (planar, hard, multi)")
-    p.add_argument("--board", type=_board, default=(9, 6), help="inner corners COLSxROWS (planar, hard; default 9x6)")
+                   help="square size in pixels, PX or MIN:MAX (all but negative, box and robot)")
+    p.add_argument("--board", type=_board, default=(9, 6),
+                   help="inner corners COLSxROWS (planar, hard, partial, occluded; default 9x6)")
     p.add_argument("--photometric", choices=("clean", "normal", "hard"), default=None,
                    help="photometric conditions (default: normal; robot: clean)")
     p.add_argument("--force", action="store_true", help="overwrite existing files")
@@ -92,6 +94,12 @@ def run(args: argparse.Namespace) -> int:
             elif args.scene == "hard":
                 kw = {"square_px": args.square_px} if args.square_px else {}
                 view = scenes.hard_view(seed, size=size, cols=cols, rows=rows, **kw)
+            elif args.scene == "partial":
+                kw = {"square_px": args.square_px} if args.square_px else {}
+                view = scenes.partial_view(seed, size=size, cols=cols, rows=rows, photometric=phot, **kw)
+            elif args.scene == "occluded":
+                kw = {"square_px": args.square_px} if args.square_px else {}
+                view = scenes.occluded_view(seed, size=size, cols=cols, rows=rows, photometric=phot, **kw)
             elif args.scene == "multi":
                 kw = {"square_px": args.square_px} if args.square_px else {}
                 view = scenes.multi_view(seed, size=size, photometric=phot, **kw)

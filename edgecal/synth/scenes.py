@@ -445,3 +445,81 @@ def hard_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 48
                        photometric=random_photometric(_rng(seed, "hard"), "hard"))
     view.truth["category"] = "hard"
     return view
+
+
+def partial_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
+                 square_mm: float = 25.0, square_px: "float | tuple[float, float]" = (20.0, 45.0),
+                 visible_fraction: tuple[float, float] = (0.3, 0.9), tilt_max_deg: float = 40.0,
+                 photometric: "Photometric | str" = "normal", background: str = "clutter") -> RenderedView:
+    """One board cut by the image border: only ``visible_fraction`` of its corners are in view
+    (``complete`` is false in the truth)."""
+    rng = _rng(seed, "partial")
+    camera = random_camera(rng, size)
+    board = planar_target(cols, rows, square_mm, name="board0").boards[0]
+    sq = _pick(rng, square_px)
+    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    z = f * square_mm / sq
+    centre = np.array([(cols - 1) * square_mm / 2.0, (rows - 1) * square_mm / 2.0, 0.0])
+    pts = board.board_points_mm()
+    w, h = size
+    border = 4.0
+    for _ in range(500):
+        R = (rotation_about(np.array([*rng.normal(size=2), 0.0]), np.radians(rng.uniform(0, tilt_max_deg)))
+             @ rotation_about(np.array([0, 0, 1.0]), rng.uniform(-np.pi, np.pi)))
+        ray = camera.pixel_to_ray(np.array([[rng.uniform(-0.2, 1.2) * w, rng.uniform(-0.2, 1.2) * h]]))[0]
+        if not np.all(np.isfinite(ray)):
+            continue
+        t = ray * z - R @ centre
+        cam_pts = pts @ R.T + t
+        if np.any(cam_pts[:, 2] <= 1.0):
+            continue
+        px = camera.project(cam_pts)
+        inside = ((px[:, 0] >= border) & (px[:, 0] <= w - 1 - border) & (px[:, 1] >= border) & (px[:, 1] <= h - 1 - border))
+        if visible_fraction[0] <= inside.mean() <= visible_fraction[1]:
+            break
+    else:
+        raise ValueError(f"no pose of a {cols}x{rows} board with {sq:.0f} px squares shows "
+                         f"{visible_fraction[0]:.0%}..{visible_fraction[1]:.0%} of its corners")
+    bg, distractors = _background(rng, size, background)
+    panels = [Panel("board0", np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                    board_panel_extent(board, square_mm), board, float(rng.uniform(0.03, 0.15)),
+                    float(rng.uniform(0.75, 0.92)))]
+    return render_view(camera, panels, R, t, background=bg, photometric=_photometric(rng, photometric), rng=rng,
+                       border_px=border, extra={"category": "partial", "seed": _seed_list(seed) + ["partial"],
+                                                "square_px_nominal": sq, "distractors": distractors})
+
+
+def occluded_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
+                  square_mm: float = 25.0, square_px: "float | tuple[float, float]" = (20.0, 40.0),
+                  cover: tuple[float, float] = (0.15, 0.4), photometric: "Photometric | str" = "normal",
+                  background: str = "clutter") -> RenderedView:
+    """One board partly hidden behind a plain plate held in front of it (``complete`` is false)."""
+    rng = _rng(seed, "occluded")
+    camera = random_camera(rng, size)
+    board = planar_target(cols, rows, square_mm, name="board0").boards[0]
+    sq = _pick(rng, square_px)
+    pose = place_board(rng, camera, board, sq, 35.0)
+    if pose is None:
+        raise ValueError(f"a {cols}x{rows} board with {sq:.0f} px squares does not fit a {size[0]}x{size[1]} image")
+    R, t, (x0, y0, x1, y1) = pose
+    # A plate parallel to the image, at 60..85 % of the board's depth, over one side of the board's box.
+    depth = float((R @ np.array([(cols - 1) * square_mm / 2, (rows - 1) * square_mm / 2, 0.0]) + t)[2])
+    d = depth * float(rng.uniform(0.6, 0.85))
+    frac = float(rng.uniform(*cover))
+    side = int(rng.integers(0, 4))
+    bw, bh = x1 - x0, y1 - y0
+    rect = [(x0 - 40, y0 - 40, x0 + frac * bw, y1 + 40), (x1 - frac * bw, y0 - 40, x1 + 40, y1 + 40),
+            (x0 - 40, y0 - 40, x1 + 40, y0 + frac * bh), (x0 - 40, y1 - frac * bh, x1 + 40, y1 + 40)][side]
+    corners = camera.pixel_to_ray(np.array([[rect[0], rect[1]], [rect[2], rect[3]]])) * d
+    Rt = R.T  # camera -> world (board) frame
+    origin = Rt @ (corners[0] - t)
+    extent = (0.0, 0.0, float(corners[1, 0] - corners[0, 0]), float(corners[1, 1] - corners[0, 1]))
+    plate = Panel("plate", origin, Rt @ np.array([1.0, 0, 0]), Rt @ np.array([0, 1.0, 0]), extent, None, 0.0,
+                  float(rng.uniform(0.2, 0.7)), 0.5)
+    panels = [Panel("board0", np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
+                    board_panel_extent(board, square_mm), board, float(rng.uniform(0.03, 0.15)),
+                    float(rng.uniform(0.75, 0.92))), plate]
+    bg, distractors = _background(rng, size, background)
+    return render_view(camera, panels, R, t, background=bg, photometric=_photometric(rng, photometric), rng=rng,
+                       extra={"category": "occluded", "seed": _seed_list(seed) + ["occluded"],
+                              "square_px_nominal": sq, "distractors": distractors})

@@ -3,7 +3,8 @@
 The format is the one of ../shared/data/synthetic/README.md, so one scoring code reads the shared sets
 and edgecal's own renders. Corner pixels come from cv2.projectPoints (the reference definition of the
 camera model); a corner is listed only when its printed side faces the camera, no other panel is in
-front of it and it lies at least ``border_px`` inside the image.
+front of it (nor of the board within 0.3 squares around it) and it lies at least ``border_px`` inside
+the image.
 """
 
 from __future__ import annotations
@@ -32,8 +33,12 @@ def project_points_cv(camera: CameraModel, points_world: np.ndarray, R_cam_world
 
 
 def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray,
-                border_px: float = 4.0) -> list[dict]:
-    """The ``boards`` section: per printed panel with at least one visible corner, its visible corners."""
+                border_px: float = 4.0, occlusion_margin: float = 0.3) -> list[dict]:
+    """The ``boards`` section: per printed panel with at least one visible corner, its visible corners.
+
+    A corner is visible when its printed side faces the camera, no panel hides it or the board within
+    ``occlusion_margin`` squares around it, and it lies ``border_px`` inside the image.
+    """
     R = np.asarray(R_cam_world, dtype=np.float64)
     t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
     w, h = camera.size
@@ -50,6 +55,14 @@ def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
                + (ids[:, 1:2] * s) * np.asarray(p.y_axis)[None, :])
         z = (xyz @ R.T + t)[:, 2]
         ok = visible_mask(camera, panels, R, t, k, xyz) & (z > 0)
+        if occlusion_margin > 0 and ok.any():
+            # A corner right at an occluding edge has half a saddle: list it only when the board around it
+            # (occlusion_margin squares in 8 directions) is visible too.
+            q = occlusion_margin * s
+            offs = np.array([[1, 0], [-1, 0], [0, 1], [0, -1], [1, 1], [1, -1], [-1, 1], [-1, -1]], float) * q
+            around = (xyz[:, None, :] + offs[None, :, :1] * np.asarray(p.x_axis)[None, None, :]
+                      + offs[None, :, 1:] * np.asarray(p.y_axis)[None, None, :]).reshape(-1, 3)
+            ok &= visible_mask(camera, panels, R, t, k, around).reshape(-1, 8).all(axis=1)
         px = np.full((len(ids), 2), np.nan)
         if ok.any():
             px[ok] = project_points_cv(camera, xyz[ok], R, t)
