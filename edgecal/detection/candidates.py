@@ -103,10 +103,20 @@ def estimate_noise_sigma(grey: np.ndarray) -> float:
     The 3x3 mask [[1,-2,1],[-2,4,-2],[1,-2,1]] cancels smooth shading and lines; its response to white noise
     has 6 sigma spread, and the median ignores the few edge pixels.
     """
-    mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    resp = cv2.filter2D(grey.astype(np.float32), cv2.CV_32F, mask)
-    # Every 3rd pixel in each direction is plenty for a median and 9x cheaper.
-    return float(np.median(np.abs(resp[1:-1:3, 1:-1:3])) / (0.6745 * 6.0))
+    # The mask evaluated on every 3rd pixel in each direction only: plenty for a median, 9x cheaper.
+    g = grey.astype(np.float32)
+    c = g[1:-1:3, 1:-1:3]
+    h, w = c.shape
+    n = g[0:-2:3, 1:-1:3][:h, :w]
+    s_ = g[2::3, 1:-1:3][:h, :w]
+    e = g[1:-1:3, 2::3][:h, :w]
+    wv = g[1:-1:3, 0:-2:3][:h, :w]
+    ne = g[0:-2:3, 2::3][:h, :w]
+    nw = g[0:-2:3, 0:-2:3][:h, :w]
+    se = g[2::3, 2::3][:h, :w]
+    sw = g[2::3, 0:-2:3][:h, :w]
+    resp = 4.0 * c - 2.0 * (n + s_ + e + wv) + (ne + nw + se + sw)
+    return float(np.median(np.abs(resp)) / (0.6745 * 6.0)) if resp.size else 0.0
 
 
 @njit(cache=True, nogil=True)

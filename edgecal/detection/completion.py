@@ -42,12 +42,13 @@ def _apply(h: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 
 def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
-    """Image positions of ``labels`` and the local square size there (the shorter label step), pixels."""
+    """Image positions of ``labels`` and the distance to the nearest neighbouring corner there, pixels."""
     lab = np.asarray(labels, np.float64)
     p = _apply(h, lab)
-    du = np.linalg.norm(_apply(h, lab + (1.0, 0.0)) - p, axis=1)
-    dv = np.linalg.norm(_apply(h, lab + (0.0, 1.0)) - p, axis=1)
-    return p, np.minimum(du, dv)
+    # the nearest of the eight neighbours: on a slanted board a diagonal one can be the closest
+    steps = [np.linalg.norm(_apply(h, lab + d) - p, axis=1)
+             for d in ((1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, -1.0))]
+    return p, np.min(steps, axis=0)
 
 
 def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],

@@ -21,7 +21,7 @@ from edgecal.detection.candidates import (estimate_noise_sigma, min_eigen_candid
                                           smoothing_sigma, snap_to_saddle)
 from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.grouping import group_grids
-from edgecal.detection.ordering import assign_ids
+from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, probe_candidates,
                                      ring_prefilter)
@@ -34,22 +34,25 @@ DEFAULT_PARAMS = DetectorParams()
 
 
 def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, radii: np.ndarray,
-           p: DetectorParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """probe_candidates with the thresholds of ``p``."""
+           p: DetectorParams, n_angles: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """probe_candidates with the thresholds of ``p`` (``n_angles`` rays, default p.probe_angles)."""
     return probe_candidates(gx, gy, smooth, np.ascontiguousarray(pts, np.float64),
-                            np.ascontiguousarray(radii, np.float64), p.probe_angles, p.probe_inner_radius_px,
+                            np.ascontiguousarray(radii, np.float64), n_angles or p.probe_angles,
+                            p.probe_inner_radius_px,
                             EDGE_ACROSS_RAY, math.radians(p.angle_diff_max_deg), p.sign_fraction,
                             p.min_contrast, p.min_peak_ratio)
 
 
 def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.ndarray,
                 p: DetectorParams) -> np.ndarray:
-    """Candidates accepted by the probe at r_e or, failing that, at a small radius.
+    """Candidates accepted by the probe at r_e or, failing that, at a small or a large radius.
 
     Min-eigenvalue maxima sit 1-3 px off an X-corner (the gradient vanishes at the saddle itself), and the
     probe needs to sit on the corner, so every candidate is snapped to its saddle first.
     """
-    radii = (float(p.probe_radius_px), max(p.probe_radius_min_px, 0.5 * p.probe_radius_px))
+    # r_e first; a small radius for small squares; a large one for big, blurred or blooming corners.
+    radii = (float(p.probe_radius_px), max(p.probe_radius_min_px, 0.5 * p.probe_radius_px),
+             min(p.probe_radius_max_px, 2.0 * p.probe_radius_px))
     pts = snap_to_saddle(smooth, cands, 3)
     pts = pts[_dedupe(pts, np.arange(len(pts)), 0.75)]
     keep = np.zeros(len(pts), dtype=bool)
@@ -63,13 +66,19 @@ def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.nd
         todo = np.nonzero(~accepted)[0]
         if len(todo) == 0:
             break
-        ok, _d, _m = _probe(smooth, gx, gy, pts[todo], np.full(len(todo), radius), p)
+        # Half the rays suffice to accept or reject; the directions used later come from the second pass.
+        ok, _d, _m = _probe(smooth, gx, gy, pts[todo], np.full(len(todo), radius), p,
+                            max(16, p.probe_angles // 2))
         accepted[todo[ok]] = True
     return pts[accepted]
 
 
 def _nearest_spacing(pts: np.ndarray) -> np.ndarray:
-    """Distance from each point to its nearest other point: the local square size on a board."""
+    """Distance from each point to its nearest other point: the local square size on a board.
+
+    On a steeply slanted board the nearest corner can be a diagonal neighbour, which is why this is taken
+    from the points themselves and not from grid labels: windows sized by it never hold two corners.
+    """
     if len(pts) < 2:
         return np.full(len(pts), 20.0)
     d, _ = cKDTree(pts).query(pts, k=2)
@@ -89,17 +98,6 @@ def _dedupe(pts: np.ndarray, order: np.ndarray, radius: float = 1.0) -> np.ndarr
                 continue
             drop[j if rank[j] > rank[i] else i] = True
     return np.asarray([i for i in order if not drop[i]], dtype=np.int64)
-
-
-def _grid_spacing(uv: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Per corner, the distance to its nearest label neighbour (the foreshortened square size)."""
-    index = {(int(u), int(v)): i for i, (u, v) in enumerate(uv)}
-    out = np.zeros(len(uv))
-    for i, (u, v) in enumerate(uv):
-        d = [np.hypot(*(xy[j] - xy[i])) for j in (index.get((u + a, v + b)) for a, b in
-                                                  ((1, 0), (-1, 0), (0, 1), (0, -1))) if j is not None]
-        out[i] = np.min(d) if d else 10.0
-    return out
 
 
 def _grid_span(grid: dict[tuple[int, int], np.ndarray]) -> tuple[int, int]:
@@ -133,16 +131,27 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
     if min(grey.shape) >= p.pyramid_min_size_px:
         half = _detect_level(cv2.pyrDown(grey), target, p)
         if len(half.detections) == len(target.boards):
-            return _to_full_resolution(half, grey)
+            full = _to_full_resolution(half, grey, p)
+            if full is not None:
+                return full
     return _detect_level(grey, target, p)
 
 
-def _to_full_resolution(half: DetectionDebug, grey: np.ndarray) -> DetectionDebug:
-    """Scale a half-resolution result up (pyrDown keeps even pixels: x_full = 2 x_half) and refine."""
+def _to_full_resolution(half: DetectionDebug, grey: np.ndarray, p: DetectorParams) -> DetectionDebug | None:
+    """Scale a half-resolution result up (pyrDown keeps even pixels: x_full = 2 x_half) and refine.
+
+    None when a board was too small at half resolution to trust (squares under 8 px there) or does not stay
+    regular after refinement: the full-resolution search then decides.
+    """
     smooth = cv2.GaussianBlur(grey.astype(np.float32), (5, 5), 0.8)
     for det in half.detections:
+        spacing = _nearest_spacing(det.corners)
+        if spacing.min() < 8.0:
+            return None
         xy = 2.0 * det.corners
-        det.corners = refine_corners(smooth, xy, _grid_spacing(det.ids, xy))
+        det.corners = refine_corners(smooth, xy, 2.0 * spacing)
+        if not grid_is_regular(det.corners, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
+            return None
     return DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
                           half.detections, half.notes)
 
@@ -174,6 +183,7 @@ def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> Detect
                                p.cross_ratio_tolerance)
     by_size = _boards_by_size(target)
     max_dim = max(max(b.cols, b.rows) for b in target.boards)
+    min_corners = min(b.n_corners for b in target.boards)
     used_boards: set[str] = set()
     grids = []
     for comp in np.unique(labels[:, 0]):
@@ -184,7 +194,8 @@ def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> Detect
             continue
         grid = {(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members}
         grid = trim_false_edges(grid, smooth, p.min_contrast)
-        if len(grid) >= p.min_grid_corners and not _is_full_board(grid, by_size):
+        # Completion is for boards the probe half-saw, not for every fragment of clutter.
+        if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) and not _is_full_board(grid, by_size):
             grid = complete_grid(grid, smooth, gx, gy, max_dim, p)
         grids.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.
@@ -203,8 +214,11 @@ def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> Detect
         if ids is None:
             debug.notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
-        # Final sub-pixel pass with the window from the grid's own spacing.
-        xy = refine_corners(smooth, xy, _grid_spacing(uv, xy))
+        # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
+        xy = refine_corners(smooth, xy, _nearest_spacing(xy))
+        if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
+            debug.notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
+            continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         tree = cKDTree(pts)
         d, j = tree.query(xy[order])

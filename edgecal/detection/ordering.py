@@ -75,3 +75,40 @@ def assign_ids(uv: np.ndarray, xy: np.ndarray, smooth: np.ndarray, board: Board)
         if best is None or key < best[0]:
             best = (key, ids)
     return None if best is None else best[1]
+
+
+def grid_is_regular(corners: np.ndarray, ids: np.ndarray, cols: int, rows: int, cross_ratio_tolerance: float,
+                    max_turn_deg: float = 40.0, max_step_ratio: float = 2.0) -> bool:
+    """Final check of a complete, numbered board: every row and column is a smooth run of corners.
+
+    Consecutive steps may turn by at most ``max_turn_deg`` (room for fisheye lenses) and change length by at
+    most ``max_step_ratio``; every four consecutive corners keep the cross-ratio of equal steps (Eq. 8)
+    within ``cross_ratio_tolerance``. A grid whose labels went wrong zig-zags and fails.
+    """
+    grid = np.full((rows, cols, 2), np.nan)
+    grid[ids[:, 1], ids[:, 0]] = corners
+    if np.isnan(grid).any():
+        return False
+    cos_turn = np.cos(np.radians(max_turn_deg))
+    for lines in (grid, grid.transpose(1, 0, 2)):  # rows, then columns
+        steps = np.diff(lines, axis=1)
+        length = np.linalg.norm(steps, axis=2)
+        if (length < 1e-6).any():
+            return False
+        if steps.shape[1] >= 2:
+            a, b = steps[:, :-1], steps[:, 1:]
+            la, lb = length[:, :-1], length[:, 1:]
+            if ((a * b).sum(axis=2) / (la * lb) < cos_turn).any():
+                return False
+            if (np.maximum(la / lb, lb / la) > max_step_ratio).any():
+                return False
+        if steps.shape[1] >= 3:
+            # positions along each run of four, measured along the run's chord
+            x1 = np.zeros(length[:, :-2].shape)
+            x2 = length[:, :-2]
+            x3 = x2 + length[:, 1:-1]
+            x4 = x3 + length[:, 2:]
+            cr = (x3 - x1) * (x4 - x2) / ((x3 - x2) * (x4 - x1))
+            if (np.abs(cr - 4.0 / 3.0) / (4.0 / 3.0) > cross_ratio_tolerance).any():
+                return False
+    return True

@@ -55,7 +55,8 @@ def _fill_profile(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: fl
                   edge_mode: int, cos_t: np.ndarray, sin_t: np.ndarray, out: np.ndarray) -> None:
     """Eq. (1): out[k] = mean edge signal along the ray at angle k from r_in to radius."""
     n = cos_t.shape[0]
-    n_steps = max(2, int(radius - r_in) + 1)
+    # One sample per pixel of radius, at most 10: a longer ray only averages more of the same line.
+    n_steps = min(10, max(2, int(radius - r_in) + 1))
     step = (radius - r_in) / (n_steps - 1)
     for k in range(n):
         c = cos_t[k]
@@ -154,8 +155,9 @@ def _sector_signs(grey: np.ndarray, x: float, y: float, radius: float, dirs: np.
     """
     n_ang = 5
     n_rad = 3
-    r0 = max(1.5, 0.25 * radius)
-    r1 = max(r0 + 1.0, 0.6 * radius)
+    # Stay out of the corner's own blur (inner radius) and inside its four squares (outer radius).
+    r0 = max(2.0, 0.35 * radius)
+    r1 = max(r0 + 1.0, 0.7 * radius)
     vals = np.empty((4, n_ang * n_rad))
     total = 0.0
     for sct in range(4):
@@ -263,7 +265,7 @@ def probe_profile_reference(gx: np.ndarray, gy: np.ndarray, x: float, y: float, 
         return float((img[y0, x0] * (1 - fx) + img[y0, x0 + 1] * fx) * (1 - fy)
                      + (img[y0 + 1, x0] * (1 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
 
-    n_steps = max(2, int(radius - r_in) + 1)
+    n_steps = min(10, max(2, int(radius - r_in) + 1))
     radii = [r_in + i * (radius - r_in) / (n_steps - 1) for i in range(n_steps)]
     out = np.zeros(n_angles)
     for k in range(n_angles):
