@@ -356,6 +356,15 @@ def test_robot_sequence_truth() -> None:
     assert np.linalg.norm(frames[1].t_rig_robot_mm - frames[0].t_rig_robot_mm) < 20
 
 
+def test_robot_motion_blur_keeps_mid_exposure_truth() -> None:
+    sharp = next(robot_sequence(3, 1, size=(640, 400), supersampling=4))
+    blurred = next(robot_sequence(3, 1, size=(640, 400), supersampling=4, exposure_ms=20.0, exposure_samples=4))
+    assert blurred.left.truth["boards"] == sharp.left.truth["boards"]
+    diff = np.abs(blurred.left.image.astype(int) - sharp.left.image.astype(int))
+    assert diff.max() > 5  # the moving robot is smeared ...
+    assert np.median(diff) <= 1  # ... the static room is not
+
+
 def test_random_camera_levels() -> None:
     rng = np.random.default_rng(0)
     assert np.all(random_camera(rng, distortion="none").dist == 0)

@@ -398,11 +398,14 @@ def robot_pose_world(time_s: float, phase: np.ndarray) -> tuple[np.ndarray, np.n
 
 def robot_sequence(seed: int, n_frames: int | None = None, *, fps: float = 30.0, size: tuple[int, int] = (1280, 800),
                    photometric: "Photometric | str" = "clean", supersampling: int = 8,
-                   border_px: float = 4.0) -> Iterator[RobotFrame]:
+                   border_px: float = 4.0, exposure_ms: float = 0.0,
+                   exposure_samples: int = 5) -> Iterator[RobotFrame]:
     """Frames of a stereo rig watching the robot (endless when ``n_frames`` is None; nothing is kept).
 
     The room (clutter, rig, lighting) is fixed for the whole sequence; the robot moves smoothly at
     about 1 m from the rig and each frame gets fresh sensor noise. T_rig_robot = T_rig_world T_world_robot.
+    ``exposure_ms`` > 0 blurs the motion: each image averages ``exposure_samples`` instants of the
+    exposure, and the truth (stamp_ns, T_rig_robot, corners) is the mid-exposure one.
     """
     rng = _rng(seed, "robot")
     rig = robot_rig(seed, size)
@@ -418,16 +421,24 @@ def robot_sequence(seed: int, n_frames: int | None = None, *, fps: float = 30.0,
     while n_frames is None or k < n_frames:
         time_s = k / fps
         R_wr, t_wr = robot_pose_world(time_s, phase)
-        panels = (panels_from_target(tgt, R_wr, t_wr, margin_mm=10.0, black_albedo=0.06, white_albedo=0.85)
-                  + _body_panels(R_wr, t_wr, body_albedo))
-        extra = {"category": "robot", "seed": _seed_list(seed) + ["robot"], "frame": k}
+
+        def scene(R_wr: np.ndarray, t_wr: np.ndarray) -> list[Panel]:
+            return (panels_from_target(tgt, R_wr, t_wr, margin_mm=10.0, black_albedo=0.06, white_albedo=0.85)
+                    + _body_panels(R_wr, t_wr, body_albedo))
+
+        panels = scene(R_wr, t_wr)
+        exposure = None
+        if exposure_ms > 0:
+            offsets = (np.linspace(-0.5, 0.5, max(2, exposure_samples))) * exposure_ms * 1e-3
+            exposure = [scene(*robot_pose_world(time_s + dt, phase)) for dt in offsets]
+        extra = {"category": "robot", "seed": _seed_list(seed) + ["robot"], "frame": k, "exposure_ms": exposure_ms}
         noise = np.random.default_rng(_seed_list(seed) + [k])
         left = render_view(rig.left, panels, rig.R_left_world, rig.t_left_world_mm, background=bg_l, photometric=phot,
                            rng=noise, supersampling=supersampling, border_px=border_px, target_frame="world",
-                           target_name=tgt.name, extra={**extra, "stereo_side": "left"})
+                           target_name=tgt.name, extra={**extra, "stereo_side": "left"}, exposure=exposure)
         right = render_view(rig.right, panels, R_r, t_r, background=bg_r, photometric=phot, rng=noise,
                             supersampling=supersampling, border_px=border_px, target_frame="world",
-                            target_name=tgt.name, extra={**extra, "stereo_side": "right"})
+                            target_name=tgt.name, extra={**extra, "stereo_side": "right"}, exposure=exposure)
         R_rig_robot = rig.R_left_world @ R_wr
         t_rig_robot = rig.R_left_world @ t_wr + rig.t_left_world_mm
         for view in (left, right):

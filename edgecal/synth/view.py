@@ -32,14 +32,21 @@ def render_view(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
                 *, background: np.ndarray | float = 0.5, photometric: Photometric = CLEAN,
                 rng: np.random.Generator | int | None = 0, supersampling: int = 12, border_px: float = 4.0,
                 target_frame: str = "world", target_name: str | None = None,
-                extra: dict | None = None) -> RenderedView:
+                extra: dict | None = None, exposure: list[list[Panel]] | None = None) -> RenderedView:
     """Render ``panels`` seen by ``camera`` at pose (R_cam_world, t_cam_world_mm) and describe the truth.
 
     ``rng`` (a Generator or a seed) drives the noise only; geometry is exact and deterministic.
     ``extra`` entries are added to the truth document (category, seed, distractors, ...).
+    ``exposure``: the scene at several instants of the exposure; their images are averaged (motion blur)
+    while the truth describes ``panels`` (the mid-exposure scene).
     """
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    radiance, _coverage = render_radiance(camera, panels, R_cam_world, t_cam_world_mm, background, supersampling)
+    if exposure:
+        radiance = np.mean([render_radiance(camera, sub, R_cam_world, t_cam_world_mm, background, supersampling)[0]
+                            for sub in exposure], axis=0)
+    else:
+        radiance, _coverage = render_radiance(camera, panels, R_cam_world, t_cam_world_mm, background,
+                                              supersampling)
     image = apply_photometric(radiance, photometric, gen)
     truth = {
         "format": GT_FORMAT,
