@@ -107,6 +107,8 @@ class ClockMapper:
 class AravisSource(Source):
     """One GigE Vision / USB3 Vision camera streaming through Aravis."""
 
+    live = True
+
     def __init__(self, spec: SourceSpec) -> None:
         self.spec = spec
         self.uri = spec.uri

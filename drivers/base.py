@@ -61,6 +61,9 @@ class Source(abc.ABC):
     """
 
     uri: str = ""
+    # True when stamp_ns is on this host's CLOCK_MONOTONIC now (a live camera), so that
+    # time.monotonic_ns() - stamp_ns is the frame's age; False for replays of recorded stamps.
+    live: bool = False
 
     def describe(self) -> dict:
         """The source's URI and settings as plain JSON-able values (written into recording manifests)."""

@@ -183,6 +183,8 @@ def convert_frame(data: np.ndarray, width: int, height: int, coding: int, stride
 class DC1394Source(Source):
     """One IIDC camera on a FireWire bus."""
 
+    live = True
+
     def __init__(self, spec: SourceSpec) -> None:
         self.spec = spec
         self.uri = spec.uri

@@ -25,6 +25,7 @@ class LatestFrameSource(Source):
     def __init__(self, inner: Source, timeout_s: float = 2.0) -> None:
         self.inner = inner
         self.uri = inner.uri
+        self.live = inner.live
         self.timeout_s = timeout_s
         self._cond = threading.Condition()
         self._slot: object | None = None

@@ -88,6 +88,8 @@ def factory_calibration(calib: Any, width: int, height: int) -> FactoryCalibrati
 class OakStereoSource(StereoSource):
     """An OAK device's left/right mono pair, synchronised on the device."""
 
+    live = True
+
     def __init__(self, spec: SourceSpec) -> None:
         self.spec = spec
         self.uri = spec.uri

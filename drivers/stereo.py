@@ -81,6 +81,7 @@ class PairedStereoSource(StereoSource):
         self.timeout_s = timeout_s
         self.uri = uri
         self._open = False
+        self.live = left.live and right.live
 
     @property
     def dropped(self) -> int:

@@ -72,6 +72,8 @@ def list_devices() -> list[dict]:
 class V4L2Source(Source):
     """One V4L2 capture device."""
 
+    live = True
+
     def __init__(self, spec: SourceSpec) -> None:
         self.spec = spec
         self.uri = spec.uri

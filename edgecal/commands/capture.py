@@ -19,7 +19,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("capture", help="grab frames, detect boards, print per-frame timestamps and findings",
                        description="Read frames from SOURCE (a URI, see docs/drivers.md), run the detector on "
                                    "each (with --target or --board) and print one line per frame: sequence, "
-                                   "capture timestamp, interval, delivery latency, size and the boards found.")
+                                   "capture timestamp, interval, latency (receipt to print), age (capture to "
+                                   "print, live cameras), size and the boards found.")
     p.add_argument("source", metavar="SOURCE", help="source URI, e.g. aravis:192.168.1.20 or replay:DIR")
     p.add_argument("--frames", type=int, default=10, metavar="N", help="frames (or pairs) to grab (default 10)")
     p.add_argument("--out", metavar="DIR", help="also record the frames into DIR (an edgecal recording)")
@@ -41,12 +42,14 @@ def _detect(image: Any, target: Any) -> list[dict]:
     return found
 
 
-def _describe_frame(f: Any, prev_stamp: int | None, now: int, target: Any) -> dict:
+def _describe_frame(f: Any, prev_stamp: int | None, now: int, target: Any, live: bool) -> dict:
     h, w = f.image.shape[:2]
     kind = "BGR" if f.image.ndim == 3 else "grey"
     out = {"camera": f.camera_id, "seq": f.seq, "stamp_ns": f.stamp_ns,
            "interval_ms": None if prev_stamp is None else round((f.stamp_ns - prev_stamp) / 1e6, 3),
            "latency_ms": round((now - f.recv_ns) / 1e6, 3), "size": f"{w}x{h}", "pixels": f"{kind} {f.image.dtype}"}
+    if live:  # capture-to-delivery: the stamp is on this host's monotonic clock
+        out["age_ms"] = round((now - f.stamp_ns) / 1e6, 3)
     if f.exposure_us is not None:
         out["exposure_us"] = f.exposure_us
     if target is not None:
@@ -57,7 +60,8 @@ def _describe_frame(f: Any, prev_stamp: int | None, now: int, target: Any) -> di
 def _text(d: dict) -> str:
     interval = "" if d["interval_ms"] is None else f" +{d['interval_ms']:.2f}ms"
     line = (f"{d['camera']} seq={d['seq']} stamp_ns={d['stamp_ns']}{interval} "
-            f"latency={d['latency_ms']:.2f}ms {d['size']} {d['pixels']}")
+            f"latency={d['latency_ms']:.2f}ms" + (f" age={d['age_ms']:.2f}ms" if "age_ms" in d else "")
+            + f" {d['size']} {d['pixels']}")
     if "boards" in d:
         boards = ", ".join(f"{b['board']} {b['corners']}/{b['of']}" for b in d["boards"]) or "no board"
         line += f": {boards}"
@@ -86,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                 frames = [item.left, item.right] if isinstance(item, StereoFrame) else [item]
                 rows = []
                 for f in frames:
-                    rows.append(_describe_frame(f, prev.get(f.camera_id), now, target))
+                    rows.append(_describe_frame(f, prev.get(f.camera_id), now, target, src.live))
                     prev[f.camera_id] = f.stamp_ns
                 if isinstance(item, StereoFrame):
                     rows[1]["skew_ms"] = round(item.skew_ns / 1e6, 3)
