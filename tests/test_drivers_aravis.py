@@ -166,6 +166,17 @@ def test_builtin_fake_interface() -> None:
     assert f.image.shape == (48, 64)
 
 
+def test_capture_command_on_the_builtin_fake(capsys: pytest.CaptureFixture) -> None:
+    _require_aravis()
+    from edgecal.cli import main
+    assert main(["capture", "aravis:fake?fps=50&width=64&height=48", "--frames", "4", "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert len(rows) == 4 and all(r["size"] == "64x48" for r in rows)
+    # A live camera: the age (capture to print) is known and small, intervals follow the 50 fps clock.
+    assert all(0 <= r["age_ms"] < 2000 for r in rows)
+    assert all(5 < r["interval_ms"] < 60 for r in rows[1:])
+
+
 @pytest.mark.parametrize("fmt, origin", [("BayerRG8", (0, 0)), ("BayerGR8", (0, 1)), ("BayerGB8", (1, 0)),
                                           ("BayerBG8", (1, 1))])
 def test_bayer_patterns_decode_to_the_right_colours(fmt: str, origin: tuple[int, int]) -> None:
