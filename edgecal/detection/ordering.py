@@ -21,37 +21,28 @@ _SYMMETRIES = [np.array(m, dtype=np.int64) for m in (
     ((-1, 0), (0, 1)), ((1, 0), (0, -1)), ((0, 1), (1, 0)), ((0, -1), (-1, 0)))]
 
 
-def _mean_step(uv: np.ndarray, xy: np.ndarray, axis: int) -> np.ndarray:
-    """Mean image displacement for +1 along label ``axis`` (0 = u, 1 = v)."""
-    index = {(int(u), int(v)): i for i, (u, v) in enumerate(uv)}
-    steps = []
-    for i, (u, v) in enumerate(uv):
-        key = (int(u) + (axis == 0), int(v) + (axis == 1))
-        j = index.get(key)
-        if j is not None:
-            steps.append(xy[j] - xy[i])
-    return np.mean(steps, axis=0) if steps else np.zeros(2)
+def _dense(ids: np.ndarray, xy: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    """The corners as a (rows, cols, 2) array indexed [row, col]."""
+    grid = np.empty((rows, cols, 2))
+    grid[ids[:, 1], ids[:, 0]] = xy
+    return grid
 
 
-def square_darkness(uv: np.ndarray, xy: np.ndarray, smooth: np.ndarray) -> float:
-    """Mean intensity of squares whose low corner has odd u+v minus that of squares with even u+v.
+def square_darkness(grid: np.ndarray, smooth: np.ndarray) -> float:
+    """Mean intensity of the squares whose low corner has odd col+row minus that of those with even col+row.
 
-    Positive means squares with even u+v (at their low corner) are the dark ones.
+    ``grid`` is (rows, cols, 2). Positive means the squares with even col+row at their low corner are dark.
     """
-    index = {(int(u), int(v)): i for i, (u, v) in enumerate(uv)}
+    centres = 0.25 * (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:])
     h, w = smooth.shape
-    sums = {0: [], 1: []}
-    for (u, v), i in index.items():
-        quad = [index.get((u + 1, v)), index.get((u, v + 1)), index.get((u + 1, v + 1))]
-        if any(q is None for q in quad):
-            continue
-        c = (xy[i] + xy[quad[0]] + xy[quad[1]] + xy[quad[2]]) / 4.0
-        x, y = int(round(c[0])), int(round(c[1]))
-        if 0 <= x < w and 0 <= y < h:
-            sums[(u + v) % 2].append(float(smooth[y, x]))
-    if not sums[0] or not sums[1]:
+    x = np.clip(np.rint(centres[..., 0]).astype(np.int64), 0, w - 1)
+    y = np.clip(np.rint(centres[..., 1]).astype(np.int64), 0, h - 1)
+    vals = smooth[y, x]
+    r, c = np.mgrid[0:vals.shape[0], 0:vals.shape[1]]
+    even = (r + c) % 2 == 0
+    if not even.any() or even.all():
         return 0.0
-    return float(np.mean(sums[1]) - np.mean(sums[0]))
+    return float(vals[~even].mean() - vals[even].mean())
 
 
 def assign_ids(uv: np.ndarray, xy: np.ndarray, smooth: np.ndarray, board: Board) -> np.ndarray | None:
@@ -64,13 +55,14 @@ def assign_ids(uv: np.ndarray, xy: np.ndarray, smooth: np.ndarray, board: Board)
         span = ids.max(axis=0) + 1
         if span[0] != board.cols or span[1] != board.rows:
             continue
-        d_col = _mean_step(ids, xy, 0)
-        d_row = _mean_step(ids, xy, 1)
+        grid = _dense(ids, xy, board.cols, board.rows)
+        d_col = (grid[:, 1:] - grid[:, :-1]).reshape(-1, 2).mean(axis=0)
+        d_row = (grid[1:] - grid[:-1]).reshape(-1, 2).mean(axis=0)
         if d_col[0] * d_row[1] - d_col[1] * d_row[0] <= 0:
             continue
         # Squares with even col+row at their low corner must be dark (the black square at +,+ of (0, 0)).
-        colour_ok = square_darkness(ids, xy, smooth) > 0 if (board.cols + board.rows) % 2 == 1 else True
-        origin = xy[np.nonzero((ids[:, 0] == 0) & (ids[:, 1] == 0))[0][0]]
+        colour_ok = square_darkness(grid, smooth) > 0 if (board.cols + board.rows) % 2 == 1 else True
+        origin = grid[0, 0]
         key = (not colour_ok, float(origin[0] + origin[1]))
         if best is None or key < best[0]:
             best = (key, ids)
