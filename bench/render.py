@@ -84,7 +84,6 @@ def main() -> int:
         panels = panels_from_target(tgt)
         rows.append((f"render_view {tag} (fixed camera, 9x6 board)",
                      *timed(lambda k: render_view(cam, panels, poses[k][0], poses[k][1]), n)))
-        f = cam.K[0, 0]
         rows.append((f"  reference: OpenCV 8x warp {tag} (no distortion, no truth)",
                      *timed(lambda k: opencv_reference(size, 9, 6, 0.06 * size[0], np.array(
                          [[1.0, 0.1 * np.sin(k), 100.0], [0.05, 1.0, 80.0], [1e-4, 0.0, 1.0]])), n)))

@@ -8,6 +8,7 @@ checkerboard, the point symmetry of the rendered X-junctions, and cv2.cornerSubP
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -416,9 +417,7 @@ def test_render_command_bad_options(tmp_path, capsys) -> None:
 
 # --- the shared referee set (skipped when ../shared is absent) --------------------------------------------
 
-def _shared_synthetic() -> "Path | None":
-    from pathlib import Path
-
+def _shared_synthetic() -> Path | None:
     for root in (Path(__file__).resolve().parents[1].parent / "shared", Path("/work/shared")):
         if (root / "data" / "synthetic" / "planar").is_dir():
             return root / "data" / "synthetic"

@@ -1,6 +1,8 @@
 """Ready-made scenes for tests, the demo and the benchmarks, each deterministic from a seed.
 
 - :func:`planar_view`: one board, random tilt / roll / position, square size given in pixels;
+- :func:`hard_view`, :func:`partial_view`, :func:`occluded_view`: the same in poor conditions, cut by the
+  image border, partly hidden behind a plate;
 - :func:`negative_view`: clutter with checker-like distractors and no board;
 - :func:`multi_view`: 2..3 boards of different grids in one image;
 - :func:`box_stereo`: the calibration box (configs/targets/box-100mm.yaml) seen by a stereo pair;
@@ -21,30 +23,36 @@ import numpy as np
 from edgecal.config import packaged_config_path
 from edgecal.synth.camera import CameraModel, look_at, rotation_about, stereo_right_pose
 from edgecal.synth.clutter import clutter_background, uniform_background
-from edgecal.synth.photometric import CLEAN, Photometric, random_photometric
+from edgecal.synth.photometric import Photometric, random_photometric
 from edgecal.synth.render import Panel, board_panel_extent, panels_from_target
 from edgecal.synth.truth import PAIR_FORMAT, target_json
 from edgecal.synth.view import RenderedView, render_view
 from edgecal.targets import Board, Target, load_target, planar_target
 
 
-def _seed_list(seed: "int | tuple[int, ...]") -> list[int]:
+#: A seed: an int, or a tuple of ints (e.g. (set seed, image index)).
+SeedLike = int | tuple[int, ...]
+#: A fixed value, or a (low, high) range drawn uniformly.
+FloatOrRange = float | tuple[float, float]
+
+
+def _seed_list(seed: SeedLike) -> list[int]:
     return [int(v) for v in seed] if isinstance(seed, (tuple, list)) else [int(seed)]
 
 
-def _rng(seed: "int | tuple[int, ...]", tag: str) -> np.random.Generator:
+def _rng(seed: SeedLike, tag: str) -> np.random.Generator:
     # One independent stream per (scene kind, seed): scene kinds never share random numbers.
     return np.random.default_rng(_seed_list(seed) + [sum(ord(c) * 31 ** i for i, c in enumerate(tag)) % (2 ** 31)])
 
 
-def _pick(rng: np.random.Generator, value: "float | tuple[float, float]") -> float:
+def _pick(rng: np.random.Generator, value: FloatOrRange) -> float:
     if isinstance(value, (tuple, list)):
         return float(rng.uniform(value[0], value[1]))
     return float(value)
 
 
 def random_camera(rng: np.random.Generator, size: tuple[int, int] = (640, 480),
-                  hfov_deg: "float | tuple[float, float]" = (55.0, 72.0), distortion: str = "mild",
+                  hfov_deg: FloatOrRange = (55.0, 72.0), distortion: str = "mild",
                   name: str = "cam") -> CameraModel:
     """A plausible camera: random field of view, principal point near the centre, distortion level
     "none", "mild" (|k1| <= 0.15) or "strong" (barrel up to k1 = -0.3)."""
@@ -62,7 +70,7 @@ def random_camera(rng: np.random.Generator, size: tuple[int, int] = (640, 480),
                                 name)
 
 
-def _photometric(rng: np.random.Generator, photometric: "Photometric | str") -> Photometric:
+def _photometric(rng: np.random.Generator, photometric: Photometric | str) -> Photometric:
     return photometric if isinstance(photometric, Photometric) else random_photometric(rng, photometric)
 
 
@@ -103,7 +111,7 @@ def _fits(camera: CameraModel, pts_cam: np.ndarray, margin_px: float,
 
 
 def place_board(rng: np.random.Generator, camera: CameraModel, board: Board, square_px: float,
-                tilt_max_deg: float = 50.0, roll_deg: "float | tuple[float, float]" = (-180.0, 180.0),
+                tilt_max_deg: float = 50.0, roll_deg: FloatOrRange = (-180.0, 180.0),
                 margin_px: float = 3.0, taken: list | None = None,
                 tries: int = 300) -> tuple[np.ndarray, np.ndarray, tuple[float, float, float, float]] | None:
     """A random pose (R_cam_board, t_cam_board_mm) that shows all of ``board``'s squares in the image.
@@ -134,9 +142,9 @@ def place_board(rng: np.random.Generator, camera: CameraModel, board: Board, squ
     return None
 
 
-def planar_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
-                square_mm: float = 25.0, square_px: "float | tuple[float, float]" = (15.0, 45.0),
-                tilt_max_deg: float = 50.0, photometric: "Photometric | str" = "normal",
+def planar_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
+                square_mm: float = 25.0, square_px: FloatOrRange = (15.0, 45.0),
+                tilt_max_deg: float = 50.0, photometric: Photometric | str = "normal",
                 background: str = "clutter", distortion: str = "mild", supersampling: int = 12,
                 border_px: float = 4.0) -> RenderedView:
     """One ``cols`` x ``rows`` board (world frame = board frame) at a random pose, fully in view.
@@ -169,7 +177,7 @@ def planar_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 
                               "tilt_deg": tilt, "distractors": distractors})
 
 
-def negative_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), photometric: "Photometric | str" = "normal",
+def negative_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), photometric: Photometric | str = "normal",
                   distractors: list[str] | None = None) -> RenderedView:
     """Clutter with checker-like distractors (2..5 unless given) and no board: 0 boards in the truth."""
     rng = _rng(seed, "negative")
@@ -188,9 +196,9 @@ def negative_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640
 MULTI_GRIDS = ((5, 3), (6, 4), (7, 5), (4, 3), (8, 5), (3, 3))
 
 
-def multi_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (1280, 800), n_boards: "int | tuple[int, int]" = (2, 3),
-               square_px: "float | tuple[float, float]" = (12.0, 40.0), tilt_max_deg: float = 40.0,
-               photometric: "Photometric | str" = "normal", background: str = "clutter",
+def multi_view(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), n_boards: int | tuple[int, int] = (2, 3),
+               square_px: FloatOrRange = (12.0, 40.0), tilt_max_deg: float = 40.0,
+               photometric: Photometric | str = "normal", background: str = "clutter",
                supersampling: int = 12, border_px: float = 4.0) -> RenderedView:
     """2..3 boards of different grids and square sizes, side by side (no overlap), world = camera frame."""
     rng = _rng(seed, "multi")
@@ -253,8 +261,8 @@ def _box_face_extents(target: Target, cube_mm: float) -> dict[str, tuple[float, 
     return out
 
 
-def box_stereo(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (1280, 800), distance_mm: "float | tuple[float, float]" = (250.0, 350.0),
-               baseline_mm: float = 70.0, photometric: "Photometric | str" = "normal", background: str = "clutter",
+def box_stereo(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), distance_mm: FloatOrRange = (250.0, 350.0),
+               baseline_mm: float = 70.0, photometric: Photometric | str = "normal", background: str = "clutter",
                target: Target | None = None, cube_mm: float = 100.0, supersampling: int = 12,
                border_px: float = 4.0) -> StereoView:
     """The calibration box seen by a (nearly parallel) stereo rig; world frame = box frame.
@@ -371,7 +379,7 @@ class RobotRig:
                 "convention": "X_right = R_right_left @ X_left + T_right_left_mm (camera frames, mm)"}
 
 
-def robot_rig(seed: int, size: tuple[int, int] = (1280, 800), baseline_mm: float = 75.0) -> RobotRig:
+def robot_rig(seed: SeedLike, size: tuple[int, int] = (1280, 800), baseline_mm: float = 75.0) -> RobotRig:
     """The rig of :func:`robot_sequence`: 0.8 m from the robot's area, 0.65 m up, looking down at it (~0.95 m)."""
     rng = _rng(seed, "robot-rig")
     left = random_camera(rng, size, hfov_deg=(68.0, 72.0), name="left")
@@ -396,8 +404,8 @@ def robot_pose_world(time_s: float, phase: np.ndarray) -> tuple[np.ndarray, np.n
     return R, np.array([x, y, 5.0 * np.sin(2 * np.pi * time_s / 2.0 + a)])
 
 
-def robot_sequence(seed: int, n_frames: int | None = None, *, fps: float = 30.0, size: tuple[int, int] = (1280, 800),
-                   photometric: "Photometric | str" = "clean", supersampling: int = 8,
+def robot_sequence(seed: SeedLike, n_frames: int | None = None, *, fps: float = 30.0, size: tuple[int, int] = (1280, 800),
+                   photometric: Photometric | str = "clean", supersampling: int = 8,
                    border_px: float = 4.0, exposure_ms: float = 0.0,
                    exposure_samples: int = 5) -> Iterator[RobotFrame]:
     """Frames of a stereo rig watching the robot (endless when ``n_frames`` is None; nothing is kept).
@@ -449,8 +457,8 @@ def robot_sequence(seed: int, n_frames: int | None = None, *, fps: float = 30.0,
         k += 1
 
 
-def hard_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
-              square_px: "float | tuple[float, float]" = (8.0, 25.0), tilt_max_deg: float = 70.0) -> RenderedView:
+def hard_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
+              square_px: FloatOrRange = (8.0, 25.0), tilt_max_deg: float = 70.0) -> RenderedView:
     """A planar view in poor conditions: steep tilt, small squares, low contrast, uneven light, heavy noise."""
     view = planar_view(seed, size=size, cols=cols, rows=rows, square_px=square_px, tilt_max_deg=tilt_max_deg,
                        photometric=random_photometric(_rng(seed, "hard"), "hard"))
@@ -458,10 +466,10 @@ def hard_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 48
     return view
 
 
-def partial_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
-                 square_mm: float = 25.0, square_px: "float | tuple[float, float]" = (20.0, 45.0),
+def partial_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
+                 square_mm: float = 25.0, square_px: FloatOrRange = (20.0, 45.0),
                  visible_fraction: tuple[float, float] = (0.3, 0.9), tilt_max_deg: float = 40.0,
-                 photometric: "Photometric | str" = "normal", background: str = "clutter") -> RenderedView:
+                 photometric: Photometric | str = "normal", background: str = "clutter") -> RenderedView:
     """One board cut by the image border: only ``visible_fraction`` of its corners are in view
     (``complete`` is false in the truth)."""
     rng = _rng(seed, "partial")
@@ -500,9 +508,9 @@ def partial_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640,
                                                 "square_px_nominal": sq, "distractors": distractors})
 
 
-def occluded_view(seed: "int | tuple[int, ...]", *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
-                  square_mm: float = 25.0, square_px: "float | tuple[float, float]" = (20.0, 40.0),
-                  cover: tuple[float, float] = (0.15, 0.4), photometric: "Photometric | str" = "normal",
+def occluded_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: int = 9, rows: int = 6,
+                  square_mm: float = 25.0, square_px: FloatOrRange = (20.0, 40.0),
+                  cover: tuple[float, float] = (0.15, 0.4), photometric: Photometric | str = "normal",
                   background: str = "clutter") -> RenderedView:
     """One board partly hidden behind a plain plate held in front of it (``complete`` is false)."""
     rng = _rng(seed, "occluded")
