@@ -13,10 +13,13 @@ units), buffers (kernel queue length; small = low latency).
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import glob
 import os
 import re
 import stat
+import struct
 import time
 from pathlib import Path
 
@@ -44,6 +47,43 @@ def check_device_node(path: str) -> None:
                           f"'video' group: sudo usermod -aG video $USER, then log in again)")
 
 
+# VIDIOC_QUERYCAP = _IOR('V', 0, struct v4l2_capability): driver[16] card[32] bus_info[32] version
+# capabilities device_caps reserved[3] (104 bytes, linux/videodev2.h).
+VIDIOC_QUERYCAP = 0x80685600
+_CAPABILITY = struct.Struct("16s32s32sIII12x")
+V4L2_CAP_VIDEO_CAPTURE = 0x00000001
+V4L2_CAP_VIDEO_CAPTURE_MPLANE = 0x00001000
+V4L2_CAP_DEVICE_CAPS = 0x80000000
+
+
+def query_capabilities(path: str) -> tuple[str, bool]:
+    """(card name, whether the node captures video) from VIDIOC_QUERYCAP; DeviceError if it is no V4L2 node.
+
+    A UVC camera creates two nodes: one captures, the other carries metadata only.
+    """
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
+    except PermissionError:
+        raise DeviceError(f"v4l2:{path}: no permission to open the device (add the user to the 'video' group: "
+                          "sudo usermod -aG video $USER, then log in again)") from None
+    except OSError as exc:
+        raise DeviceError(f"v4l2:{path}: cannot open ({exc.strerror})") from None
+    try:
+        buf = bytearray(_CAPABILITY.size)
+        try:
+            fcntl.ioctl(fd, VIDIOC_QUERYCAP, buf)
+        except OSError as exc:
+            if exc.errno in (errno.ENOTTY, errno.EINVAL):
+                raise DeviceError(f"v4l2:{path}: not a V4L2 device (it does not answer VIDIOC_QUERYCAP)") from None
+            raise DeviceError(f"v4l2:{path}: VIDIOC_QUERYCAP failed ({exc.strerror})") from None
+    finally:
+        os.close(fd)
+    _, card, _, _, caps, device_caps = _CAPABILITY.unpack(bytes(buf))
+    effective = device_caps if caps & V4L2_CAP_DEVICE_CAPS else caps
+    capture = bool(effective & (V4L2_CAP_VIDEO_CAPTURE | V4L2_CAP_VIDEO_CAPTURE_MPLANE))
+    return card.split(b"\0", 1)[0].decode(errors="replace"), capture
+
+
 def device_index(path: str) -> int:
     """N of the /dev/videoN node that ``path`` is or links to; DeviceError for any other device."""
     real = os.path.realpath(path)
@@ -63,9 +103,13 @@ def list_devices() -> list[dict]:
             name = name_file.read_text().strip()
         except OSError:
             name = "?"
-        ok = os.access(dev, os.R_OK | os.W_OK)
-        out.append({"uri": f"v4l2:{dev}", "name": name, "usable": ok,
-                    "why": "" if ok else "no permission (add the user to the 'video' group)"})
+        try:
+            card, capture = query_capabilities(dev)
+            why = "" if capture else "not a capture node (metadata or output)"
+            name = card or name
+        except DeviceError as exc:
+            capture, why = False, str(exc).split(": ", 1)[-1]
+        out.append({"uri": f"v4l2:{dev}", "name": name, "usable": capture, "why": why})
     return out
 
 
@@ -100,6 +144,10 @@ class V4L2Source(Source):
             return
         path = self.spec.target
         check_device_node(path)
+        card, capture = query_capabilities(path)
+        if not capture:
+            raise DeviceError(f"{self.uri}: {card or 'the device'} has no video capture on this node (UVC cameras "
+                              "have a second, metadata-only node: try the other /dev/videoN)")
         s = self.settings
         params = [cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(s.timeout_s * 1000)]
         # OpenCV's V4L2 backend opens /dev/videoN by its index N (udev symlinks are resolved first).

@@ -38,14 +38,16 @@ def test_v4l2_absent_device(tmp_path: Path) -> None:
 
 
 def test_v4l2_rejects_what_is_not_a_capture_device(tmp_path: Path) -> None:
-    _expect_device_error("v4l2:/dev/null", r"not a V4L2 capture device .*got /dev/null")
+    # A character device that does not answer VIDIOC_QUERYCAP (the real ioctl is sent).
+    _expect_device_error("v4l2:/dev/null", r"v4l2:/dev/null: not a V4L2 device \(it does not answer VIDIOC_QUERYCAP\)")
     f = tmp_path / "video0"
     f.write_bytes(b"")
     _expect_device_error(f"v4l2:{f}", "not a device node")
 
 
-def test_v4l2_device_listing_reads_sysfs() -> None:
-    from edgecal.drivers.v4l2 import list_devices
+def test_v4l2_device_listing_and_capability_struct() -> None:
+    from edgecal.drivers.v4l2 import _CAPABILITY, list_devices
+    assert _CAPABILITY.size == 104          # sizeof(struct v4l2_capability)
     devices = list_devices()
     assert all(d["uri"].startswith("v4l2:/dev/video") and "usable" in d for d in devices)
 
