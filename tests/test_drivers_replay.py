@@ -158,3 +158,18 @@ def test_rendered_sequence_replays_with_its_truth_stamps(tmp_path: Path) -> None
     assert [p.left.stamp_ns for p in pairs] == [0, 33_000_000, 67_500_000]
     assert all(p.skew_ns == 0 for p in pairs) and [p.right.seq for p in pairs] == [0, 1, 2]
     assert np.array_equal(pairs[1].right.image, render_frame(11))
+
+
+def test_a_camera_fault_during_recording_keeps_what_was_recorded(tmp_path: Path) -> None:
+    frames = _camera_frames(3, (8, 8), np.uint8)
+
+    class Unplugged(ListSource):
+        def read(self, timeout_s=None):
+            if self.i >= len(self.frames):
+                raise DeviceError("cam0: lost contact with the camera")
+            return super().read(timeout_s)
+
+    with Unplugged(frames) as src, pytest.raises(DeviceError, match="lost contact"):
+        record(src, tmp_path / "rec", frames=10)
+    with open_source(f"replay:{tmp_path / 'rec'}?pace=fast") as rep:
+        assert [f.stamp_ns for f in rep] == [f.stamp_ns for f in frames]
