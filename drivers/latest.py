@@ -11,15 +11,16 @@ import threading
 import time
 
 from edgecal.drivers.base import Source, StereoSource
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceError, InputError
 
 
 class LatestFrameSource(Source):
     """Wrap ``inner``: a thread reads it continuously; ``read`` returns the newest unread frame.
 
     ``dropped`` counts frames that were overwritten before anyone read them. An error in the thread
-    (e.g. DeviceError when the camera stops sending) is raised by the next ``read``; when a finite
-    inner source ends, ``read`` returns the last unread frame and then None.
+    (e.g. DeviceError when the camera stops sending) is raised by the next ``read`` and ends the
+    thread; an InputError for one unreadable frame (a corrupt file in a replay) is raised once and
+    reading goes on. When a finite inner source ends, ``read`` returns the last unread frame, then None.
     """
 
     def __init__(self, inner: Source, timeout_s: float = 2.0) -> None:
@@ -30,6 +31,7 @@ class LatestFrameSource(Source):
         self._cond = threading.Condition()
         self._slot: object | None = None
         self._error: BaseException | None = None
+        self._frame_errors: list[InputError] = []
         self._ended = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -57,7 +59,14 @@ class LatestFrameSource(Source):
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
-                frame = self.inner.read(self.timeout_s)
+                try:
+                    frame = self.inner.read(self.timeout_s)
+                except InputError as exc:
+                    # One unreadable frame (a corrupt file in a replay): report it once, keep reading.
+                    with self._cond:
+                        self._frame_errors.append(exc)
+                        self._cond.notify_all()
+                    continue
                 with self._cond:
                     if frame is None:
                         self._ended = True
@@ -80,6 +89,8 @@ class LatestFrameSource(Source):
         deadline = time.monotonic() + timeout
         with self._cond:
             while self._slot is None:
+                if self._frame_errors:
+                    raise self._frame_errors.pop(0)
                 if self._error is not None:
                     err = self._error
                     if isinstance(err, DeviceError):
