@@ -344,12 +344,6 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.
                     cj = l % 1000 - 100
                     if -1 <= ci <= cols - 1 and -1 <= cj <= rows - 1:
                         n_square_cells += 1
-                back_side = (l00 // 1000) % 1000 == 1  # cell index -99 marks the back of a panel
-                if n_square_cells == 0 and not back_side:
-                    # Only margin strips of one board (all white): their borders are not real edges.
-                    out[i, j] = albedo[i, j]
-                    coverage[i, j] = 1.0
-                    continue
             n_sampled += 1
             # Junctions of the squares (X inside, T on the border) decide corner positions: sample densely.
             dense = n_lab >= 3 and one_panel and n_square_cells >= 1
@@ -357,6 +351,29 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.
             out[i, j] = val
             coverage[i, j] = cov
     return n_sampled
+
+
+@njit(cache=True, nogil=True)
+def _raycast_every_pixel(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.ndarray, n_ss: int,
+                         out: np.ndarray) -> None:
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            if rx[i, j] != rx[i, j] or rx[i, j + 1] != rx[i, j + 1] or rx[i + 1, j] != rx[i + 1, j] \
+                    or rx[i + 1, j + 1] != rx[i + 1, j + 1]:
+                out[i, j] = background[i, j]
+                continue
+            out[i, j] = _supersample(i, j, rx, ry, panels, background[i, j], n_ss)[0]
+
+
+def render_radiance_reference(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray,
+                              t_cam_world_mm: np.ndarray, background: float = 0.5, n: int = 24) -> np.ndarray:
+    """Brute-force reference for tests: every pixel averaged over n x n jittered rays, no shortcuts."""
+    w, h = camera.size
+    bg = np.full((h, w), float(background), dtype=np.float32)
+    rx, ry = camera.corner_ray_grid()
+    out = np.empty((h, w), dtype=np.float32)
+    _raycast_every_pixel(rx, ry, pack_panels(panels, R_cam_world, t_cam_world_mm), bg, int(n), out)
+    return out
 
 
 def render_radiance(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray,
