@@ -27,7 +27,7 @@ system-deps:
 	fi
 
 demo: $(VENV)/.installed
-	$(VENV)/bin/edgecal demo --out out/demo
+	$(VENV)/bin/edgecal demo --out out/demo --force
 
 test: system-deps $(VENV)/.installed
 	$(PY) -m pytest -q

@@ -25,6 +25,7 @@ COMMAND_MODULES = (
     "edgecal.commands.sources",
     "edgecal.commands.capture",
     "edgecal.commands.record",
+    "edgecal.commands.demo",
 )
 
 
