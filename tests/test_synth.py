@@ -20,7 +20,7 @@ from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
 from edgecal.synth.render import (Panel, board_panel_extent, panels_from_target, render_radiance,
                                   render_radiance_reference)
 from edgecal.synth.scenes import (box_stereo, hard_view, multi_view, negative_view, occluded_view, partial_view,
-                                  planar_view, random_camera, robot_sequence, robot_target)
+                                  planar_view, random_camera, robot_rig, robot_sequence, robot_target)
 from edgecal.synth.truth import GT_FORMAT
 from edgecal.synth.view import render_view
 from edgecal.targets import planar_target
@@ -355,6 +355,15 @@ def test_box_stereo_pair_truth_is_consistent() -> None:
     X = (X[:3] / X[3]).T
     world = np.array(bl["xyz_mm"]) @ R_l.T + t_l
     assert np.abs(X - world).max() < 1e-6
+
+
+def test_box_stereo_with_the_robot_rig() -> None:
+    rig = robot_rig(5, (640, 400))
+    pair = box_stereo(2, size=(640, 400), photometric="clean", supersampling=4, rig=rig)
+    np.testing.assert_allclose(pair.pair["R_right_left"], rig.R_right_left)
+    np.testing.assert_allclose(pair.pair["T_right_left_mm"], rig.T_right_left_mm)
+    np.testing.assert_allclose(pair.pair["left"]["K"], rig.left.K)
+    assert len(pair.left.truth["boards"]) == 3 and len(pair.right.truth["boards"]) == 3
 
 
 def test_robot_sequence_truth() -> None:

@@ -264,16 +264,21 @@ def _box_face_extents(target: Target, cube_mm: float) -> dict[str, tuple[float, 
 def box_stereo(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), distance_mm: FloatOrRange = (250.0, 350.0),
                baseline_mm: float = 70.0, photometric: Photometric | str = "normal", background: str = "clutter",
                target: Target | None = None, cube_mm: float = 100.0, supersampling: int = 12,
-               border_px: float = 4.0) -> StereoView:
+               border_px: float = 4.0, rig: "RobotRig | None" = None) -> StereoView:
     """The calibration box seen by a (nearly parallel) stereo rig; world frame = box frame.
 
     The rig looks at the box centre from the octant where all three printed faces are visible, with a
     random roll; the right camera sits ``baseline_mm`` along the left camera's x axis, slightly rotated.
+    ``rig`` (e.g. :func:`robot_rig`) replaces the random cameras and extrinsics by its own, so the box
+    calibrates the rig that a robot sequence uses.
     """
     rng = _rng(seed, "box")
     tgt = target or box_target()
     left_cam = random_camera(rng, size, hfov_deg=(55.0, 65.0), name="left")
     right_cam = random_camera(rng, size, hfov_deg=(55.0, 65.0), name="right")
+    if rig is not None:
+        left_cam, right_cam = rig.left, rig.right
+        baseline_mm = float(np.linalg.norm(rig.T_right_left_mm))
     centre = np.full(3, cube_mm / 2.0)
     direction = -rng.uniform(0.7, 1.0, size=3)
     direction /= np.linalg.norm(direction)
@@ -287,6 +292,8 @@ def box_stereo(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), distance_
     t_left = -R_left @ left_eye
     R_rl = rotation_about(rng.normal(size=3), np.radians(rng.uniform(0.3, 1.5)))
     T_rl = -R_rl @ np.array([baseline_mm, 0.0, 0.0]) + rng.normal(0, 1.0, size=3)
+    if rig is not None:
+        R_rl, T_rl = np.asarray(rig.R_right_left, dtype=np.float64), np.asarray(rig.T_right_left_mm, dtype=np.float64)
     R_right, t_right = stereo_right_pose(R_left, t_left, R_rl, T_rl)
     white = float(rng.uniform(0.75, 0.92))
     black = float(rng.uniform(0.03, 0.12))
