@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -119,51 +120,70 @@ def _boards_by_size(target: Target) -> dict[frozenset, list[Board]]:
     return out
 
 
+@dataclass
+class _Level:
+    """The images one pyramid level works on."""
+
+    smooth: np.ndarray
+    gx: np.ndarray
+    gy: np.ndarray
+
+    @classmethod
+    def of(cls, grey: np.ndarray) -> "_Level":
+        return cls(*prepare_image(grey, smoothing_sigma(estimate_noise_sigma(grey))))
+
+
+Grid = dict[tuple[int, int], np.ndarray]
+
+
 def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> DetectionDebug:
     """Detect the target's boards in ``image`` and return every intermediate result (see DetectionDebug).
 
-    Large images are searched at half resolution first (a quarter of the pixel work); when that finds every
-    board of the target, the corners are refined at full resolution and the full-resolution search, which
-    only the smallest squares need, is skipped.
+    Large images are searched at half resolution first (a quarter of the pixel work). Boards found there are
+    refined at full resolution; grids that fell short of a board there are scaled up and completed at full
+    resolution. Only when a board is still missing does the full-resolution search run (the smallest
+    squares need it).
     """
     p = params or DEFAULT_PARAMS
     grey = as_grey(image)
-    if min(grey.shape) >= p.pyramid_min_size_px:
-        half = _detect_level(cv2.pyrDown(grey), target, p)
-        if len(half.detections) == len(target.boards):
-            full = _to_full_resolution(half, grey, p)
-            if full is not None:
-                return full
-    return _detect_level(grey, target, p)
+    if min(grey.shape) < p.pyramid_min_size_px:
+        level = _Level.of(grey)
+        debug, grids = _find_grids(level, p)
+        _boards_from_grids(level, grids, target, p, debug)
+        return debug
+
+    half_level = _Level.of(cv2.pyrDown(grey))
+    half, half_grids = _find_grids(half_level, p)
+    _boards_from_grids(half_level, half_grids, target, p, half)
+    level = _Level.of(grey)
+    # pyrDown keeps the even pixels: x_full = 2 x_half.
+    debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
+    seeds = []
+    for grid in half_grids:
+        if len(grid) < p.min_grid_corners:
+            continue
+        xy = 2.0 * np.array(list(grid.values()))
+        spacing = _nearest_spacing(xy)
+        if spacing.min() < 16.0:
+            continue  # under 8 px at half resolution: leave it to the full-resolution search
+        xy = refine_corners(level.smooth, xy, spacing)
+        seeds.append(dict(zip(grid.keys(), xy)))
+    _boards_from_grids(level, seeds, target, p, debug)
+    if len(debug.detections) == len(target.boards):
+        return debug
+    full, grids = _find_grids(level, p)
+    _boards_from_grids(level, grids, target, p, full)
+    return full if len(full.detections) >= len(debug.detections) else debug
 
 
-def _to_full_resolution(half: DetectionDebug, grey: np.ndarray, p: DetectorParams) -> DetectionDebug | None:
-    """Scale a half-resolution result up (pyrDown keeps even pixels: x_full = 2 x_half) and refine.
-
-    None when a board was too small at half resolution to trust (squares under 8 px there) or does not stay
-    regular after refinement: the full-resolution search then decides.
-    """
-    smooth = cv2.GaussianBlur(grey.astype(np.float32), (5, 5), 0.8)
-    for det in half.detections:
-        spacing = _nearest_spacing(det.corners)
-        if spacing.min() < 8.0:
-            return None
-        xy = 2.0 * det.corners
-        det.corners = refine_corners(smooth, xy, 2.0 * spacing)
-        if not grid_is_regular(det.corners, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
-            return None
-    return DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
-                          half.detections, half.notes)
-
-
-def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> DetectionDebug:
-    """The whole pipeline on one image (one pyramid level)."""
-    smooth, gx, gy = prepare_image(grey, smoothing_sigma(estimate_noise_sigma(grey)))
+def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[Grid]]:
+    """Candidates, probe, sub-pixel and grouping on one level: the accepted points and their raw grids."""
+    smooth, gx, gy = level.smooth, level.gx, level.gy
     cands, _resp = min_eigen_candidates(gx, gy, p.candidate_block_size, p.candidate_quality, p.max_candidates)
-    empty = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
+    debug = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
     pts = _first_pass(smooth, gx, gy, cands, p)
     if len(pts) < 4:
-        return empty
+        return debug, []
 
     # Sub-pixel with a window from the local square size, then the probe again with its radius adapted.
     spacing = _nearest_spacing(pts)
@@ -175,32 +195,38 @@ def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> Detect
     pts, dirs, meas, spacing = pts[ok], dirs[ok], meas[ok], spacing[ok]
     debug = DetectionDebug(cands, pts, dirs, spacing)
     if len(pts) < 4:
-        return debug
+        return debug, []
     quality = (np.clip(1.0 - meas[:, M_ANGLE_ERR] / math.radians(p.angle_diff_max_deg), 0.0, 1.0)
                * np.clip(meas[:, M_CONTRAST] / (4.0 * p.min_contrast), 0.0, 1.0))
-
     labels, _nbr = group_grids(pts, dirs, spacing, quality, p.line_distance_px, p.reference_spacing_px,
                                p.cross_ratio_tolerance)
+    grids = []
+    for comp in np.unique(labels[:, 0]):
+        members = np.nonzero(labels[:, 0] == comp)[0]
+        if comp >= 0 and len(members) >= p.min_grid_corners:
+            grids.append({(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members})
+    return debug, grids
+
+
+def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: DetectorParams,
+                       debug: DetectionDebug) -> None:
+    """Trim, complete, match to the target's boards and number each grid; appends to debug.detections."""
+    smooth = level.smooth
     by_size = _boards_by_size(target)
     max_dim = max(max(b.cols, b.rows) for b in target.boards)
     min_corners = min(b.n_corners for b in target.boards)
-    used_boards: set[str] = set()
-    grids = []
-    for comp in np.unique(labels[:, 0]):
-        if comp < 0:
-            continue
-        members = np.nonzero(labels[:, 0] == comp)[0]
-        if len(members) < p.min_grid_corners:
-            continue
-        grid = {(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members}
+    finished = []
+    for grid in grids:
         grid = trim_false_edges(grid, smooth, p.min_contrast)
         # Completion is for boards the probe half-saw, not for every fragment of clutter.
         if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) and not _is_full_board(grid, by_size):
-            grid = complete_grid(grid, smooth, gx, gy, max_dim, p)
-        grids.append(grid)
+            grid = complete_grid(grid, smooth, level.gx, level.gy, max_dim, p)
+        if len(grid) >= p.min_grid_corners:
+            finished.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.
-    grids.sort(key=len, reverse=True)
-    for grid in grids:
+    finished.sort(key=len, reverse=True)
+    used_boards = {d.board for d in debug.detections}
+    for grid in finished:
         uv = np.array(list(grid.keys()), dtype=np.int64)
         xy = np.array(list(grid.values()), dtype=np.float64)
         span = uv.max(axis=0) - uv.min(axis=0) + 1
@@ -220,12 +246,18 @@ def _detect_level(grey: np.ndarray, target: Target, p: DetectorParams) -> Detect
             debug.notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))
-        tree = cKDTree(pts)
-        d, j = tree.query(xy[order])
-        q = np.where(d < 1.0, quality[np.minimum(j, len(quality) - 1)], 0.5)
-        debug.detections.append(Detection(board.name, xy[order], ids[order], q, (board.cols, board.rows)))
+        quality = _corner_quality(level, xy[order], p)
+        debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows)))
         used_boards.add(board.name)
-    return debug
+
+
+def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
+    """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
+    spacing = _nearest_spacing(xy)
+    radii = np.clip(p.probe_radius_per_spacing * spacing, p.probe_radius_min_px, p.probe_radius_max_px)
+    _ok, _dirs, meas = _probe(level.smooth, level.gx, level.gy, xy, radii, p, max(16, p.probe_angles // 2))
+    return (np.clip(1.0 - meas[:, M_ANGLE_ERR] / math.radians(p.angle_diff_max_deg), 0.0, 1.0)
+            * np.clip(meas[:, M_CONTRAST] / (4.0 * p.min_contrast), 0.0, 1.0))
 
 
 def _note_near_miss(debug: DetectionDebug, span: np.ndarray, full: bool, n: int, target: Target) -> None:

@@ -31,7 +31,7 @@ class DetectorParams:
     candidate_block_size: int = 3
     max_candidates: int = 6000
     min_grid_corners: int = 6
-    pyramid_min_size_px: int = 600
+    pyramid_min_size_px: int = 400
 
 
 DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"
