@@ -434,6 +434,11 @@ def test_render_command_box_and_robot(tmp_path) -> None:
     assert len(truth["frames"]) == 2 and (tmp_path / "robot" / "right" / "000001.png").is_file()
     q = np.array(truth["frames"][0]["q_rig_robot_xyzw"])
     assert abs(np.linalg.norm(q) - 1) < 1e-9 and q[3] >= 0
+    # A shorter sequence written over it with --force leaves no stale frames for replay to pick up.
+    assert cli.main(["render", "robot", "--out", str(tmp_path / "robot"), "--count", "1", "--size", "320x200"]) == 2
+    assert cli.main(["render", "robot", "--out", str(tmp_path / "robot"), "--count", "1", "--size", "320x200",
+                     "--force"]) == 0
+    assert sorted(p.name for p in (tmp_path / "robot" / "left").iterdir()) == ["000000.png"]
 
 
 def test_render_command_bad_options(tmp_path, capsys) -> None:

@@ -137,4 +137,10 @@ def write_robot_sequence(out_dir: str | Path, frames: Iterable[RobotFrame], rig:
         "frames": entries,
     }
     write_atomic(out / "truth.json", json_bytes(doc))
+    # An overwritten (--force) longer sequence must not leave frames behind: replay reads every file.
+    written = {f"{e['index']:06d}.png" for e in entries}
+    for side in ("left", "right"):
+        for old in (out / side).glob("[0-9][0-9][0-9][0-9][0-9][0-9].png"):
+            if old.name not in written:
+                old.unlink()
     return len(entries)
