@@ -40,7 +40,10 @@ class QualityBounds:
 class PoseSettings:
     """How the pose is computed.
 
-    triangulation:    "optimal" (Hartley-Sturm correction of each match, then linear) or "linear".
+    triangulation:    "linear" (DLT on undistorted points) or "optimal" (Hartley-Sturm correction of each
+                      match first). Either only starts the refinement, which minimises the reprojection
+                      error in both cameras and so reaches the same optimum; "optimal" costs ~15 ms per
+                      80 corners in OpenCV, hence the default "linear".
     covariance_scale: how the 6x6 covariance (J^T J)^-1 is scaled:
                       "residual" by the estimated corner noise sigma^2 = SSR / (m - 6);
                       "noise"    by the configured ``corner_noise_px`` squared;
@@ -49,7 +52,7 @@ class PoseSettings:
     corner_noise_px:  1-sigma corner localisation noise of the detector, in pixels.
     """
 
-    triangulation: str = "optimal"
+    triangulation: str = "linear"
     covariance_scale: str = "max"
     corner_noise_px: float = 0.1
     bounds: QualityBounds = field(default_factory=QualityBounds)

@@ -7,7 +7,7 @@
     rig: out/demo/rig.yaml       # stereo calibration (cv2.FileStorage, T in metres)
     target: targets/robot-3boards.yaml
     detector: null               # optional detector thresholds file (configs/detector.yaml format)
-    pose:    {triangulation: optimal, covariance_scale: max, corner_noise_px: 0.1,
+    pose:    {triangulation: linear, covariance_scale: max, corner_noise_px: 0.1,
               min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
     publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4}
     loop:    {latest_frame_wins: true, status_period_s: 1.0, camera_lost_after_s: 2.0,
