@@ -71,6 +71,21 @@ def test_undistort_reports_fold_over_as_nan() -> None:
     assert np.isfinite(x[0]) and np.isnan(x[1])
 
 
+def test_no_corner_beyond_the_distortion_fold() -> None:
+    """With k1 = -0.5 the model folds at r = 0.816: points beyond it can land in the image through the
+    fold, but the image shows what the principal inverse sees there, so they are not listed."""
+    cam = CameraModel.from_fov((320, 240), 150.0, (-0.5, 0.0, 0.0, 0.0, 0.0))
+    t = np.array([-400.0, -400.0, 100.0])
+    view = render_view(cam, panels_from_target(planar_target(40, 40, 20.0)), np.eye(3), t)
+    (b,) = view.truth["boards"]
+    cam_pts = np.array(b["xyz_mm"]) + t
+    r = np.hypot(cam_pts[:, 0], cam_pts[:, 1]) / cam_pts[:, 2]
+    assert b["n_visible"] > 20 and r.max() < np.sqrt(1 / 1.5)
+    # Every listed corner's pixel leads back to the corner's own ray.
+    rays = cam.pixel_to_ray(np.array(b["corners"]))
+    np.testing.assert_allclose(rays[:, :2], cam_pts[:, :2] / cam_pts[:, 2:3], atol=1e-9)
+
+
 def test_look_at_conventions() -> None:
     R, t = look_at(np.array([0.0, 0.0, -500.0]), np.zeros(3), up=np.array([0.0, -1.0, 0.0]))
     np.testing.assert_allclose(R, np.eye(3), atol=1e-12)  # x right, y down, z forward

@@ -127,12 +127,30 @@ def _ray_grid_cached(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
         out_x = np.empty((h + 1, w + 1))
         out_y = np.empty((h + 1, w + 1))
         _undistort_grid(float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]),
-                        float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]), out_x, out_y)
+                        float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]), monotonic_radius2(d),
+                        out_x, out_y)
         hit = (out_x, out_y)
         if len(_RAY_CACHE) > 8:
             _RAY_CACHE.clear()
         _RAY_CACHE[key] = hit
     return hit
+
+
+def monotonic_radius2(dist: np.ndarray) -> float:
+    """A squared radius (normalised) inside which the distortion is surely one-to-one (inf if everywhere).
+
+    From the radial terms: the first zero of d(r R(r))/dr = 1 + 3 k1 r^2 + 5 k2 r^4 + 7 k3 r^6, with a
+    margin for the tangential terms; beyond it the renderer checks each solution explicitly.
+    """
+    k1, k2, p1, p2, k3 = (float(v) for v in np.asarray(dist, dtype=np.float64).ravel()[:5])
+    coeffs = [7.0 * k3, 5.0 * k2, 3.0 * k1, 1.0]
+    while coeffs and coeffs[0] == 0.0:
+        coeffs.pop(0)
+    if len(coeffs) < 2:
+        return float("inf")
+    roots = np.roots(coeffs)
+    real = [float(r.real) for r in roots if abs(r.imag) < 1e-12 and r.real > 0]
+    return 0.5 * min(real) if real else float("inf")
 
 
 def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -147,16 +165,45 @@ def distort_normalized(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _jacobian_det(x: float, y: float, k1: float, k2: float, p1: float, p2: float, k3: float) -> float:
+    """Determinant of the Jacobian of the distortion at (x, y)."""
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
+    b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
+    d = radial + 2.0 * y * y * dr + 6.0 * p1 * y + 2.0 * p2 * x
+    return a * d - b * b
+
+
+@njit(cache=True, nogil=True)
+def _on_principal_branch(x: float, y: float, k1: float, k2: float, p1: float, p2: float, k3: float,
+                         r2_safe: float) -> bool:
+    """True when the segment from the optical axis to (x, y) never crosses a fold of the distortion."""
+    if x * x + y * y <= r2_safe:
+        return True
+    for k in range(1, 17):
+        s = k / 16.0
+        if _jacobian_det(s * x, s * y, k1, k2, p1, p2, k3) <= 1e-9:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def _newton_undistort(xd: float, yd: float, x: float, y: float, k1: float, k2: float, p1: float, p2: float,
-                      k3: float) -> tuple[float, float, bool]:
-    """Solve distort(x, y) = (xd, yd) by Newton's method from the guess (x, y)."""
+                      k3: float, r2_safe: float = np.inf) -> tuple[float, float, bool]:
+    """Solve distort(x, y) = (xd, yd) by Newton's method from the guess (x, y).
+
+    Only the principal solution counts (reached from the optical axis without crossing a fold, where
+    the model is one-to-one); beyond a fold the same pixel has other, unphysical preimages.
+    """
     for _ in range(40):
         r2 = x * x + y * y
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
         fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
         fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
         if abs(fx) + abs(fy) < 1e-14:
-            return x, y, True
+            return x, y, _on_principal_branch(x, y, k1, k2, p1, p2, k3, r2_safe)
         dr = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d(radial)/d(r2)
         a = radial + 2.0 * x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
         b = 2.0 * x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y  # the Jacobian is symmetric
@@ -171,12 +218,12 @@ def _newton_undistort(xd: float, yd: float, x: float, y: float, k1: float, k2: f
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     fx = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd
     fy = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd
-    return x, y, abs(fx) + abs(fy) < 1e-12
+    return x, y, abs(fx) + abs(fy) < 1e-12 and _on_principal_branch(x, y, k1, k2, p1, p2, k3, r2_safe)
 
 
 @njit(cache=True, nogil=True)
 def _undistort_kernel(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float, p1: float, p2: float,
-                      k3: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
+                      k3: float, r2_safe: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
     """Undistort a list of points; each starts from the previous solution when there is one."""
     px = np.nan
     py = np.nan
@@ -189,10 +236,10 @@ def _undistort_kernel(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float, p1: 
         else:
             x0 = xd[i]
             y0 = yd[i]
-        x, y, ok = _newton_undistort(xd[i], yd[i], x0, y0, k1, k2, p1, p2, k3)
+        x, y, ok = _newton_undistort(xd[i], yd[i], x0, y0, k1, k2, p1, p2, k3, r2_safe)
         if not ok and px == px:
             # A far-away previous point can be a poor start: try from the distorted point itself.
-            x, y, ok = _newton_undistort(xd[i], yd[i], xd[i], yd[i], k1, k2, p1, p2, k3)
+            x, y, ok = _newton_undistort(xd[i], yd[i], xd[i], yd[i], k1, k2, p1, p2, k3, r2_safe)
         if ok:
             out_x[i] = x
             out_y[i] = y
@@ -208,7 +255,7 @@ def _undistort_kernel(xd: np.ndarray, yd: np.ndarray, k1: float, k2: float, p1: 
 
 @njit(cache=True, nogil=True)
 def _undistort_grid(fx: float, skew: float, cx: float, fy: float, cy: float, k1: float, k2: float, p1: float,
-                    p2: float, k3: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
+                    p2: float, k3: float, r2_safe: float, out_x: np.ndarray, out_y: np.ndarray) -> None:
     """Rays through the pixel-corner grid: out[i, j] for pixel point (j - 0.5, i - 0.5)."""
     gh, gw = out_x.shape
     for i in range(gh):
@@ -225,9 +272,9 @@ def _undistort_grid(fx: float, skew: float, cx: float, fy: float, cy: float, k1:
                 else:
                     x = xd
                     y = yd
-            x, y, ok = _newton_undistort(xd, yd, x, y, k1, k2, p1, p2, k3)
+            x, y, ok = _newton_undistort(xd, yd, x, y, k1, k2, p1, p2, k3, r2_safe)
             if not ok:
-                x, y, ok = _newton_undistort(xd, yd, xd, yd, k1, k2, p1, p2, k3)
+                x, y, ok = _newton_undistort(xd, yd, xd, yd, k1, k2, p1, p2, k3, r2_safe)
             if ok:
                 out_x[i, j] = x
                 out_y[i, j] = y
@@ -248,7 +295,8 @@ def undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: np.ndarray) -> tu
     d = np.asarray(dist, dtype=np.float64).ravel()
     out_x = np.empty_like(xd)
     out_y = np.empty_like(yd)
-    _undistort_kernel(xd, yd, float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]), out_x, out_y)
+    _undistort_kernel(xd, yd, float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]), monotonic_radius2(d),
+                      out_x, out_y)
     return out_x, out_y
 
 

@@ -66,6 +66,12 @@ def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
         px = np.full((len(ids), 2), np.nan)
         if ok.any():
             px[ok] = project_points_cv(camera, xyz[ok], R, t)
+            # Beyond the radius where the distortion folds over, a point can project into the image
+            # although the pixel's ray (the unique inverse the renderer uses) points elsewhere: not seen.
+            cam_pts = xyz[ok] @ R.T + t
+            rays = camera.pixel_to_ray(px[ok])
+            same = np.all(np.abs(rays[:, :2] - cam_pts[:, :2] / cam_pts[:, 2:3]) < 1e-7, axis=1)
+            ok[np.flatnonzero(ok)[~same]] = False
         inside = ((px[:, 0] >= border_px - 0.5) & (px[:, 0] <= w - 0.5 - border_px)
                   & (px[:, 1] >= border_px - 0.5) & (px[:, 1] <= h - 0.5 - border_px))
         ok &= inside
