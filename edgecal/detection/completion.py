@@ -123,12 +123,21 @@ def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray
 
 
 def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray, spacing: np.ndarray,
-            params: DetectorParams, inside_grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            params: DetectorParams, inside_grid: np.ndarray,
+            accepted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Refine predicted corners and keep those the probe confirms near their prediction.
 
-    Holes inside a grid (``inside_grid``) are pinned down by neighbours on all sides, so the probe only has
-    to see a corner there (thresholds relaxed further); new rows outside must pass the probe properly.
+    A point the probe already accepted within 0.4 x spacing of a prediction is taken as it is (grouping may
+    have missed the link, e.g. along a line a fisheye lens bends hard). Holes inside a grid
+    (``inside_grid``) are pinned down by neighbours on all sides, so the probe only has to see a corner
+    there (thresholds relaxed further); new rows outside must pass the probe properly.
     """
+    if accepted is not None and len(accepted):
+        from scipy.spatial import cKDTree
+
+        d, j = cKDTree(accepted).query(preds)
+        snap = d < 0.4 * spacing
+        preds = np.where(snap[:, None], accepted[np.minimum(j, len(accepted) - 1)], preds)
     h, w = smooth.shape
     inside = ((preds[:, 0] > 2) & (preds[:, 1] > 2) & (preds[:, 0] < w - 3) & (preds[:, 1] < h - 3))
     refined = preds.copy()
@@ -146,9 +155,37 @@ def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarra
     return refined, (ok | (inside_grid & hole_ok)) & near & inside
 
 
+def _extrapolate(grid: dict[tuple[int, int], np.ndarray], labels: list[tuple[int, int]],
+                 outward: tuple[int, int]) -> tuple[list[np.ndarray], list[float], list[tuple[int, int]]]:
+    """Predict a new outer line one step ``outward``, each point along its own grid line.
+
+    Quadratic extrapolation from the three nearest points of that line (linear from two): unlike a homography
+    it follows lines that a fisheye lens bends. Returns (points, nearest-corner distances, their labels).
+    """
+    du, dv = outward
+    pts, spacing, keys = [], [], []
+    for u, v in labels:
+        p0 = grid.get((u - du, v - dv))
+        p1 = grid.get((u - 2 * du, v - 2 * dv))
+        p2 = grid.get((u - 3 * du, v - 3 * dv))
+        if p0 is None or p1 is None:
+            continue
+        new = 2.0 * p0 - p1 if p2 is None else 3.0 * p0 - 3.0 * p1 + p2
+        along = [grid.get((u - du + dv, v - dv + du)), grid.get((u - du - dv, v - dv - du))]
+        dists = [float(np.hypot(*(new - p0)))] + [float(np.hypot(*(q - p0))) for q in along if q is not None]
+        pts.append(new)
+        spacing.append(min(dists))
+        keys.append((u, v))
+    return pts, spacing, keys
+
+
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,
-                  gy: np.ndarray, max_dim: int, params: DetectorParams) -> dict[tuple[int, int], np.ndarray]:
-    """Fill holes and grow the grid at its sides (up to ``max_dim`` labels per axis); returns a new dict."""
+                  gy: np.ndarray, max_dim: int, params: DetectorParams,
+                  accepted: np.ndarray | None = None) -> dict[tuple[int, int], np.ndarray]:
+    """Fill holes and grow the grid at its sides (up to ``max_dim`` labels per axis); returns a new dict.
+
+    ``accepted``: points the probe accepted on this level, tried first at every predicted position.
+    """
     grid = dict(grid)
     for _ in range(2 * max_dim + 2):
         us = [u for u, _ in grid]
@@ -159,7 +196,10 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         holes = [(u, v) for u in range(u0, u1 + 1) for v in range(v0, v1 + 1) if (u, v) not in grid]
         preds, keys, spac = [], [], []
         for (u, v) in holes:
-            h = _local_homography(grid, u - 2, u + 2, v - 2, v + 2)
+            # the nearest ring of neighbours first: under strong lens distortion a wider patch is not planar
+            h = _local_homography(grid, u - 1, u + 1, v - 1, v + 1)
+            if h is None:
+                h = _local_homography(grid, u - 2, u + 2, v - 2, v + 2)
             if h is not None:
                 p, sp = _predict(h, [(u, v)])
                 preds.append(p[0])
@@ -174,20 +214,19 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
             sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (u0, u1, v0, v0 + 2), (0, -1)),
                       ([(u, v1 + 1) for u in range(u0, u1 + 1)], (u0, u1, v1 - 2, v1), (0, 1))]
         groups: list[tuple[int, list | None, tuple[int, int] | None]] = [(len(keys), None, None)]
-        for labels, box, outward in sides:
-            h = _local_homography(grid, *box)
-            if h is None:
+        for labels, _box, outward in sides:
+            p, sp, ok_labels = _extrapolate(grid, labels, outward)
+            if not ok_labels:
                 continue
-            p, sp = _predict(h, labels)
             preds.extend(p)
-            keys.extend(labels)
+            keys.extend(ok_labels)
             spac.extend(sp)
             groups.append((len(keys), labels, outward))
         if not keys:
             break
         n_holes = groups[0][0]
         refined, good = _verify(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
-                                np.arange(len(keys)) < n_holes)
+                                np.arange(len(keys)) < n_holes, accepted)
         start = 0
         for end, labels, outward in groups:
             sel = range(start, end)

@@ -220,7 +220,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
         grid = trim_false_edges(grid, smooth, p.min_contrast)
         # Completion is for boards the probe half-saw, not for every fragment of clutter.
         if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) and not _is_full_board(grid, by_size):
-            grid = complete_grid(grid, smooth, level.gx, level.gy, max_dim, p)
+            grid = complete_grid(grid, smooth, level.gx, level.gy, max_dim, p, debug.accepted)
         if len(grid) >= p.min_grid_corners:
             finished.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.

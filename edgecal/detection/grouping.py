@@ -173,7 +173,7 @@ def cross_ratio_strikes(pts: np.ndarray, labels: np.ndarray, tolerance: float) -
 
 def group_grids(pts: np.ndarray, dirs: np.ndarray, spacing: np.ndarray, score: np.ndarray,
                 line_distance_px: float, reference_spacing_px: float, cross_ratio_tolerance: float,
-                angle_tol: float = math.radians(20.0), max_rounds: int = 6) -> tuple[np.ndarray, np.ndarray]:
+                angle_tol: float = math.radians(25.0), max_rounds: int = 6) -> tuple[np.ndarray, np.ndarray]:
     """Link, label and verify: returns (labels (K, 3) component/u/v, -1 = not in a grid; nbr (K, 4))."""
     k_pts = len(pts)
     if k_pts == 0:

@@ -19,7 +19,7 @@ class DetectorParams:
     line_distance_px: float = 10.0
     cross_ratio_tolerance: float = 0.05
     # edgecal's own.
-    reference_spacing_px: float = 40.0
+    reference_spacing_px: float = 30.0
     probe_angles: int = 64
     probe_inner_radius_px: float = 1.5
     probe_radius_per_spacing: float = 0.6
