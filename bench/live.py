@@ -208,12 +208,14 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     folder = out / "robot"
     truth = ensure_sequence(folder, args.frames)
-    results: dict = {"frames": len(truth["frames"]), "size": "1280x800", "cores": os.cpu_count()}
+    results: dict = {"frames": len(truth["frames"]), "size": "1280x800", "cores": os.cpu_count(),
+                     "load_average_before": os.getloadavg()[0]}
 
     rt = run_loop(folder, out, True, args.seconds, args.endpoint)
     poses_rt = [m for m in rt["messages"] if m["type"] == "pose"]
     results["realtime"] = {
         "fps": len(poses_rt) / rt["wall_s"], "cpu_percent_of_one_core": 100 * rt["cpu_s"] / rt["wall_s"],
+        "cpu_ms_per_frame": 1000 * rt["cpu_s"] / max(rt["stats"].frames, 1),
         "latency": latency(rt["messages"]), "dropped_frames": rt["stats"].dropped_frames,
         "detection_failures": rt["stats"].detection_failures, "errors": pose_errors(rt["messages"], truth)}
 
@@ -222,18 +224,23 @@ def main() -> int:
     results["fast"] = {
         "fps": fast["stats"].frames / fast["wall_s"], "frames": fast["stats"].frames,
         "received": len(poses_fast), "cpu_percent_of_one_core": 100 * fast["cpu_s"] / fast["wall_s"],
+        "cpu_ms_per_frame": 1000 * fast["cpu_s"] / max(fast["stats"].frames, 1),
         "latency": latency(fast["messages"]), "errors": pose_errors(fast["messages"], truth)}
     results["detection"] = detection_times(folder, truth, args.reference_frames)
 
+    results["load_average_after"] = os.getloadavg()[0]
     r, f, d = results["realtime"], results["fast"], results["detection"]
     e = f["errors"]
     print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames, {results['cores']} cores "
-          f"(NUMBA_NUM_THREADS=1; left/right detection in two threads)")
+          f"(NUMBA_NUM_THREADS=1; left/right detection in two threads); load average "
+          f"{results['load_average_before']:.1f} before, {results['load_average_after']:.1f} after")
     print(f"real time (30 fps replay, latest-frame-wins): {r['fps']:.1f} fps processed, latency median "
           f"{r['latency'].get('median_ms', float('nan')):.1f} ms p99 {r['latency'].get('p99_ms', float('nan')):.1f} ms, "
-          f"{r['dropped_frames']} frames dropped, CPU {r['cpu_percent_of_one_core']:.0f}% of one core")
+          f"{r['dropped_frames']} frames dropped, CPU {r['cpu_percent_of_one_core']:.0f}% of one core "
+          f"({r['cpu_ms_per_frame']:.0f} CPU ms per frame)")
     print(f"as fast as possible: {f['fps']:.1f} fps sustained over {f['frames']} frames, "
-          f"CPU {f['cpu_percent_of_one_core']:.0f}% of one core")
+          f"CPU {f['cpu_percent_of_one_core']:.0f}% of one core ({f['cpu_ms_per_frame']:.0f} CPU ms per frame; "
+          f"{2000 / f['cpu_ms_per_frame']:.1f} fps if it had both cores to itself)")
     if "position_mm" in e:
         print(f"pose error ({e['valid']}/{e['poses']} valid): position median {e['position_mm']['median']:.3f} mm "
               f"p95 {e['position_mm']['p95']:.3f} max {e['position_mm']['max']:.3f}; rotation median "
