@@ -65,6 +65,7 @@ def opencv_reference(size: tuple[int, int], cols: int, rows: int, square_px: flo
 
 
 def main() -> int:
+    """Run the timings and print the table."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=15, help="timed renders per row (default 15)")
     args = ap.parse_args()

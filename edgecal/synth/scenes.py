@@ -438,6 +438,7 @@ def robot_sequence(seed: SeedLike, n_frames: int | None = None, *, fps: float = 
         R_wr, t_wr = robot_pose_world(time_s, phase)
 
         def scene(R_wr: np.ndarray, t_wr: np.ndarray) -> list[Panel]:
+            """The robot's boards and body at pose T_world_robot."""
             return (panels_from_target(tgt, R_wr, t_wr, margin_mm=10.0, black_albedo=0.06, white_albedo=0.85)
                     + _body_panels(R_wr, t_wr, body_albedo))
 
