@@ -164,3 +164,34 @@ def test_bad_config_names_the_field(sequence: tuple[Path, dict], tmp_path: Path,
     cfg.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=f"field '{field}'"):
         load_live_config(cfg)
+
+
+def test_reload_moves_the_endpoint_only_if_it_can_bind(sequence: tuple[Path, dict], tmp_path: Path) -> None:
+    import yaml
+
+    from edgecal.publish import PosePublisher
+    folder, _ = sequence
+    first, taken, second = free_endpoint(), free_endpoint(), free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", folder, first, source_extra={"loop": True})
+    doc = yaml.safe_load(cfg.read_text())
+    sub1, sub2 = Subscriber(first), Subscriber(second)
+    blocker = PosePublisher(taken)
+    loop = LiveLoop(load_live_config(cfg))
+    th, _ = run_in_thread(loop)
+    try:
+        assert sub1.wait_for(lambda: len(sub1.of("pose")) >= 1)
+        cfg.write_text(yaml.safe_dump({**doc, "publish": {"endpoint": taken}}))
+        loop.request_reload()
+        assert sub1.wait_for(lambda: any("cannot bind" in (m.get("message") or "") for m in sub1.of("status")), 10)
+        n = len(sub1.of("pose"))
+        assert sub1.wait_for(lambda: len(sub1.of("pose")) > n, 10)     # still publishing on the first one
+        cfg.write_text(yaml.safe_dump({**doc, "publish": {"endpoint": second}}))
+        loop.request_reload()
+        assert sub2.wait_for(lambda: len(sub2.of("pose")) >= 1, 10)
+    finally:
+        loop.request_stop()
+        th.join(10)
+        blocker.close()
+        sub1.close()
+        sub2.close()
+    assert loop.stats.reload_failures == 1 and loop.stats.reconnects == 0

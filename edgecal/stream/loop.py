@@ -287,8 +287,21 @@ class LiveLoop:
         old = self.config
         if new.publish != old.publish:
             assert self._publisher is not None
-            self._publisher.close()
-            self._publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
+            if new.publish.endpoint != old.publish.endpoint:
+                # Bind the new endpoint before letting go of the old one: if it is taken, nothing changes.
+                try:
+                    publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
+                except DeviceError as exc:
+                    self.stats.reload_failures += 1
+                    self._last_message = f"reload failed, keeping the running config: {exc}"
+                    log.error("%s", self._last_message)
+                    self.notifier.ready()
+                    return
+                self._publisher.close()
+            else:
+                self._publisher.close()
+                publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
+            self._publisher = publisher
         if new.source != old.source or new.loop.latest_frame_wins != old.loop.latest_frame_wins:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
