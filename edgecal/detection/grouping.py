@@ -155,12 +155,10 @@ def cross_ratio_strikes(pts: np.ndarray, labels: np.ndarray, tolerance: float) -
             if any(r is None for r in run):
                 continue
             p = pts[run]
-            axis = p[3] - p[0]
-            norm = float(np.hypot(*axis))
-            if norm < 1e-9:
-                strikes[run] += 1
-                continue
-            x = (p - p[0]) @ (axis / norm)
+            # Positions along the run as cumulative step lengths: exact for a straight line and, unlike a
+            # projection on the chord, unbiased when a lens bends the line.
+            steps = np.hypot(*(p[1:] - p[:-1]).T)
+            x = np.concatenate([[0.0], np.cumsum(steps)])
             den = (x[2] - x[1]) * (x[3] - x[0])
             if abs(den) < 1e-12:
                 strikes[run] += 1
