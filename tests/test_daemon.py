@@ -137,9 +137,12 @@ def test_bad_config_fails_before_opening_any_device(sequence: Path, tmp_path: Pa
     assert res.returncode == 2
     assert res.stderr.strip().count("\n") == 0
     assert "field 'pose.min_corners' must be at least 3" in res.stderr
-    missing = subprocess.run([sys.executable, "-m", "edgecal", "run", "--config", str(tmp_path / "none.yaml")],
-                             capture_output=True, text=True, timeout=60)
-    assert missing.returncode == 2 and "config file not found" in missing.stderr
+
+def test_missing_config_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from edgecal.cli import main
+    assert main(["run", "--config", str(tmp_path / "none.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "config file not found" in err[0]
 
 
 def test_notify_never_blocks_on_a_full_socket(tmp_path: Path) -> None:
