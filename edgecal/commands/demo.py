@@ -45,7 +45,7 @@ def render_box_pair(seed: int, out: Path) -> dict:
     """The calibration box seen by the robot rig of ``seed`` (the rig the robot sequence uses); writes
     box/left.png, box/right.png and returns the rig's truth.
 
-    The box sits 0.3 m in front of the rig, seen from the octant where its three boards face the cameras.
+    The box sits 0.26 m in front of the rig, seen from the octant where its three boards face the cameras.
     """
     from edgecal.synth import scenes
     from edgecal.synth.camera import look_at, stereo_right_pose
@@ -57,7 +57,7 @@ def render_box_pair(seed: int, out: Path) -> dict:
     panels = panels_from_target(box)
     centre = np.full(3, 50.0)
     direction = -np.array([0.85, 0.75, 0.95]) / np.linalg.norm([0.85, 0.75, 0.95])
-    eye = centre + 300.0 * direction
+    eye = centre + 260.0 * direction
     R_left, _ = look_at(eye, centre, up=np.array([0.0, 0.0, -1.0]))
     t_left = -R_left @ (eye - R_left[0] * np.linalg.norm(rig.T_right_left_mm) / 2.0)
     R_right, t_right = stereo_right_pose(R_left, t_left, rig.R_right_left, rig.T_right_left_mm)
@@ -206,7 +206,8 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
     print(f"3. robot sequence: {args.frames} stereo frames 1280x800 -> {out / 'robot'}", flush=True)
     render_robot(out, args.seed, args.frames)
-    print("4. live loop on its replay (every frame), subscriber on " + ENDPOINT, flush=True)
+    print("4. live loop on its replay (every frame), subscriber on " + ENDPOINT + "; the pose errors include "
+          "the calibration's own error above", flush=True)
     messages, fps = stream(out)
     print(f"  {len(messages)} poses received, {fps:.1f} stereo frames/s processed", flush=True)
     for line in pose_summary(messages, out / "robot" / "truth.json"):
