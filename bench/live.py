@@ -116,7 +116,7 @@ def run_loop(folder: Path, out: Path, realtime: bool, seconds: float, endpoint: 
     }))
     sub = Collector(endpoint)
     loop = LiveLoop(load_live_config(cfg))
-    loop._warm_up()                      # JIT before the clock starts (run() does it again, cached)
+    loop.warm_up()                       # JIT before the clock starts (run() does it again, cached)
     time.sleep(0.3)                      # let the subscription reach the publisher
     r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.monotonic()
     if realtime:

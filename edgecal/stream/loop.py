@@ -109,7 +109,7 @@ class LiveLoop:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
         log.info("publishing on %s; source %s", self.config.publish.endpoint, self.config.source.uri)
         try:
-            self._warm_up()
+            self.warm_up()
             while not self._stop_requested:
                 if self._reload_requested:
                     self._reload_requested = False
@@ -135,7 +135,7 @@ class LiveLoop:
                 if self._stop_requested_ns else ""
             log.info("stopped after %d frames%s", self.stats.frames, took)
 
-    def _warm_up(self) -> None:
+    def warm_up(self) -> None:
         """Run the detector once on a blank image so numba's compilation (or cache load) is not paid by
         the first camera frame, whose latency would otherwise be seconds."""
         w, h = self.config.cameras.image_size
