@@ -131,10 +131,41 @@ def test_loop_survives_corrupt_frames(sequence: tuple[Path, dict], tmp_path: Pat
     finally:
         sub.close()
     assert loop.stats.corrupt_frames == 2
-    assert loop.stats.poses_valid == 1
     poses = {m["seq"]: m for m in sub.of("pose")}
-    assert poses[0]["valid"]
-    assert not poses[2]["valid"] and "corrupt frame" in poses[2]["reason"] and "640x400" in poses[2]["reason"]
+    assert poses[0]["valid"] and poses[0]["quality"]["mode"] == "stereo"
+    assert 1 not in poses                           # the unreadable file never became a frame
+    # The half-size right image is refused; the left camera alone still gives the pose (PnP).
+    assert poses[2]["quality"]["mode"] == "mono-left" and poses[2]["quality"]["corners_right"] == 0
+    assert poses[2]["valid"], poses[2]["reason"]
+    assert loop.stats.errors == 0
+
+
+def test_both_images_corrupt_give_an_invalid_pose(sequence: tuple[Path, dict], tmp_path: Path) -> None:
+    import cv2
+    folder, _ = sequence
+    bad = tmp_path / "bad"
+    for side in ("left", "right"):
+        (bad / side).mkdir(parents=True)
+        small = cv2.imread(str(folder / side / "000000.png"), cv2.IMREAD_UNCHANGED)[::2, ::2]
+        cv2.imwrite(str(bad / side / "000000.png"), small)
+    (bad / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"loop": True},
+                       loop={"latest_frame_wins": False})
+    sub = Subscriber(endpoint)
+    loop = LiveLoop(load_live_config(cfg))
+    th, _ = run_in_thread(loop)
+    try:
+        assert sub.wait_for(lambda: len(sub.of("pose")) >= 1, 10)
+    finally:
+        loop.request_stop()
+        th.join(10)
+        sub.close()
+    msg = sub.of("pose")[0]
+    assert not msg["valid"] and msg["pose"] is None
+    assert msg["reason"].startswith("corrupt frame: left image is 640x400") and "right image" in msg["reason"]
+    assert loop.stats.corrupt_frames == loop.stats.frames == loop.stats.poses_invalid >= 1
+    assert loop.stats.errors == 0
 
 
 def test_check_image() -> None:

@@ -225,30 +225,46 @@ class LiveLoop:
             log.info("first frame processed: ready")
         return True
 
-    def _process(self, frame: StereoFrame) -> None:
-        """Detect, estimate and publish the pose of one stereo frame (an invalid pose for a bad frame)."""
-        cfg = self.config
-        problem = (check_image(frame.left.image, cfg.cameras.image_size, "left")
-                   or check_image(frame.right.image, cfg.cameras.image_size, "right"))
-        failed_images = 0
-        if problem is None:
-            try:
-                assert self._pool is not None
-                right = self._pool.submit(edgecal.detect, frame.right.image, cfg.target, cfg.detector)
-                left_det = edgecal.detect(frame.left.image, cfg.target, cfg.detector)
-                right_det = right.result()
-                failed_images = int(not left_det) + int(not right_det)
-                pose = estimate_pose(left_det, right_det, cfg.target, cfg.cameras, cfg.pose)
-            except InputError as exc:
-                problem = str(exc)
-            except Exception as exc:     # a bug must not kill a daemon that runs for weeks: log, count, go on
-                self.stats.errors += 1
-                self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exc!r}", exc_info=True)
-                pose = Pose.invalid(f"internal error: {type(exc).__name__}")
+    def _detect(self, image: object, problem: str | None) -> tuple[list, str | None]:
+        """Detections in one image, or none and the reason when the image is unusable."""
         if problem is not None:
-            self.stats.corrupt_frames += 1
-            self._rate_limited_error(f"corrupt frame {frame.left.seq}: {problem}")
-            pose = Pose.invalid(f"corrupt frame: {problem}")
+            return [], problem
+        try:
+            return edgecal.detect(image, self.config.target, self.config.detector), None
+        except InputError as exc:            # e.g. an array the detector cannot read as an image
+            return [], str(exc)
+
+    def _process(self, frame: StereoFrame) -> None:
+        """Detect, estimate and publish the pose of one stereo frame.
+
+        A corrupt image (unreadable, wrong size or type) is counted; the other camera alone still gives a
+        (mono) pose. Both corrupt: an invalid pose naming the problem.
+        """
+        cfg = self.config
+        size = cfg.cameras.image_size
+        bad_left = check_image(frame.left.image, size, "left")
+        bad_right = check_image(frame.right.image, size, "right")
+        failed_images = 0
+        try:
+            assert self._pool is not None
+            right = self._pool.submit(self._detect, frame.right.image, bad_right)
+            left_det, bad_left = self._detect(frame.left.image, bad_left)
+            right_det, bad_right = right.result()
+            problems = [p for p in (bad_left, bad_right) if p]
+            if problems:
+                self.stats.corrupt_frames += 1
+                self._rate_limited_error(f"corrupt frame {frame.left.seq}: {'; '.join(problems)}")
+            if len(problems) == 2:
+                pose = Pose.invalid(f"corrupt frame: {'; '.join(problems)}")
+            else:
+                failed_images = int(not left_det and not bad_left) + int(not right_det and not bad_right)
+                pose = estimate_pose(left_det, right_det, cfg.target, cfg.cameras, cfg.pose)
+                if problems and not pose.valid:
+                    pose.reason = f"{pose.reason}; corrupt frame: {problems[0]}"
+        except Exception as exc:     # a bug must not kill a daemon that runs for weeks: log, count, go on
+            self.stats.errors += 1
+            self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exc!r}", exc_info=True)
+            pose = Pose.invalid(f"internal error: {type(exc).__name__}")
         now = time.monotonic_ns()
         capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver == "replay")
         assert self._publisher is not None
