@@ -179,3 +179,19 @@ def test_covariance_matches_monte_carlo_spread(scale: str) -> None:
     ratio = errors.std(axis=0) / np.sqrt(np.diag(mean_cov))
     assert np.all((ratio > 0.75) & (ratio < 1.25)), ratio
     assert np.all(np.abs(errors.mean(axis=0)) < 4 * errors.std(axis=0) / np.sqrt(len(errors)) + 1e-9)
+
+
+def test_a_misread_board_is_rejected_and_named() -> None:
+    """One board's ids shifted by one column in the right image (a misread grid): the pose survives."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t, 0.1, np.random.default_rng(6))
+    bad = right[0]
+    shifted = bad.ids.copy()
+    shifted[:, 0] = (shifted[:, 0] + 1) % target.board(bad.board).cols
+    right = [Detection(bad.board, bad.corners, shifted, bad.quality, bad.grid)] + right[1:]
+    assert not estimate_pose(left, right, target, cams, max_rejected=0).valid
+    pose = estimate_pose(left, right, target, cams)
+    assert pose.valid, pose.reason
+    assert pose.rejected == (f"{bad.board} (right)",)
+    assert np.linalg.norm(pose.t_m - t) < 1e-3

@@ -111,15 +111,8 @@ def check_quality(pose: Pose, settings: PoseSettings) -> Pose:
     return pose
 
 
-def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoCameras,
-                  settings: PoseSettings = PoseSettings()) -> Pose:
-    """T_rig_robot from the detections of the left and right images of one stereo frame.
-
-    Corners seen by both cameras are triangulated and fitted rigidly for a start; with fewer than four
-    shared corners the camera that saw more is used alone (PnP). The pose is then refined over every
-    corner either camera saw, its covariance computed, and the quality bounds applied.
-    """
-    tl, tr = corner_table(left, target), corner_table(right, target)
+def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings: PoseSettings) -> Pose:
+    """One fit over the corner tables of the left and right images (see estimate_pose)."""
     counts = dict(n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)))
     if not tl and not tr:
         return Pose.invalid("no board detected", **counts)
@@ -136,3 +129,48 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
     boards = tuple(sorted({k[0] for k in tl} | {k[0] for k in tr}))
     pose = Pose(R, t, cov, mode, True, "", rms, boards=boards, **counts)
     return check_quality(pose, settings)
+
+
+def board_rms_px(pose: Pose, cams: StereoCameras, target: Target, table: dict, side: str) -> dict[str, float]:
+    """Reprojection RMS (px) of each board in one camera's corner table under ``pose``."""
+    out: dict[str, float] = {}
+    if side == "left":
+        K, d, R, t = cams.camera_matrix_left, cams.dist_coeffs_left, pose.R, pose.t_m
+    else:
+        K, d = cams.camera_matrix_right, cams.dist_coeffs_right
+        R, t = cams.R @ pose.R, cams.R @ pose.t_m + np.ravel(cams.T)
+    for board in {k[0] for k in table}:
+        keys = [k for k in table if k[0] == board]
+        px, _ = cv2.projectPoints(robot_points_m(target, keys), cv2.Rodrigues(R)[0], t, K, d)
+        err = px.reshape(-1, 2) - np.array([table[k] for k in keys])
+        out[board] = float(np.sqrt(np.mean(err ** 2)))
+    return out
+
+
+def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoCameras,
+                  settings: PoseSettings = PoseSettings(), max_rejected: int = 2) -> Pose:
+    """T_rig_robot from the detections of the left and right images of one stereo frame.
+
+    Corners seen by both cameras are triangulated and fitted rigidly for a start; with fewer than four
+    shared corners the camera that saw more is used alone (PnP). The pose is then refined over every
+    corner either camera saw, its covariance computed, and the quality bounds applied. When the RMS
+    bound fails, the board (in one camera) that fits worst is taken out and the pose fitted again, up
+    to ``max_rejected`` times: one misread board must not cost the frame. ``Pose.rejected`` names them.
+    """
+    tl, tr = corner_table(left, target), corner_table(right, target)
+    pose = _estimate(tl, tr, target, cams, settings)
+    rejected: list[str] = []
+    while (not pose.valid and np.isfinite(pose.rms_px) and pose.rms_px > settings.bounds.max_rms_px
+           and len(rejected) < max_rejected):
+        groups = [(rms, side, board) for side, table in (("left", tl), ("right", tr))
+                  for board, rms in board_rms_px(pose, cams, target, table, side).items()]
+        if len(groups) < 2:
+            break
+        _, side, board = max(groups)
+        table = tl if side == "left" else tr
+        kept = {k: v for k, v in table.items() if k[0] != board}
+        tl, tr = (kept, tr) if side == "left" else (tl, kept)
+        rejected.append(f"{board} ({side})")
+        pose = _estimate(tl, tr, target, cams, settings)
+    pose.rejected = tuple(rejected)
+    return pose

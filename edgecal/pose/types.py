@@ -80,6 +80,7 @@ class Pose:
     n_right: int = 0
     n_both: int = 0
     boards: tuple[str, ...] = ()
+    rejected: tuple[str, ...] = ()        # "board (camera)" taken out of the fit as misfits
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:
