@@ -46,7 +46,8 @@ def format_message(msg: dict) -> str:
     p, o = msg["pose"]["position_m"], msg["pose"]["orientation_xyzw"]
     return (f"{head} {q['mode']} xyz_m [{p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f}] "
             f"q_xyzw [{o[0]:+.4f} {o[1]:+.4f} {o[2]:+.4f} {o[3]:+.4f}] "
-            f"rms {q['rms_px']} px std {q['position_std_mm']} mm {q['rotation_std_deg']} deg")
+            f"rms {q['rms_px']} px std {q['position_std_mm']} mm {q['rotation_std_deg']} deg"
+            + (f" rejected {', '.join(q['rejected'])}" if q.get("rejected") else ""))
 
 
 def run(args: argparse.Namespace) -> int:
