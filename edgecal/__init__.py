@@ -1,5 +1,9 @@
 """edgecal: chessboard detection, one-shot stereo calibration and live robot pose."""
 
+from edgecal.runtime import tune_allocator
+
+tune_allocator()
+
 from edgecal.detection.detector import detect, detect_debug
 from edgecal.detection.params import DetectorParams, load_params
 from edgecal.detection.types import Detection, DetectionDebug

@@ -38,7 +38,8 @@ def _local_homography(grid: dict[tuple[int, int], np.ndarray], u_lo: int, u_hi: 
 
 def _apply(h: np.ndarray, labels: np.ndarray) -> np.ndarray:
     p = np.c_[labels, np.ones(len(labels))] @ h.T
-    return p[:, :2] / p[:, 2:3]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a point on the horizon: inf, rejected later
+        return p[:, :2] / p[:, 2:3]
 
 
 def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:

@@ -145,27 +145,35 @@ def label_components(nbr: np.ndarray, order: np.ndarray, alive: np.ndarray) -> t
 def cross_ratio_strikes(pts: np.ndarray, labels: np.ndarray, tolerance: float) -> np.ndarray:
     """Eq. (8) on every run of four consecutive labels along every grid row and column.
 
-    Returns, per point, how many runs through it fail the check.
+    Returns, per point, how many runs through it fail the check. Positions along a run are cumulative step
+    lengths: exact for a straight line and, unlike a projection on the chord, unbiased when a lens bends it.
     """
     strikes = np.zeros(len(pts), dtype=np.int64)
-    index = {(int(c), int(u), int(v)): i for i, (c, u, v) in enumerate(labels) if c >= 0}
-    for (c, u, v), i0 in index.items():
-        for du, dv in ((1, 0), (0, 1)):
-            run = [index.get((c, u + n * du, v + n * dv)) for n in range(4)]
-            if any(r is None for r in run):
+    for comp in np.unique(labels[:, 0]):
+        if comp < 0:
+            continue
+        members = np.nonzero(labels[:, 0] == comp)[0]
+        uv = labels[members, 1:] - labels[members, 1:].min(axis=0)
+        index = np.full((uv[:, 1].max() + 1, uv[:, 0].max() + 1), -1, dtype=np.int64)
+        index[uv[:, 1], uv[:, 0]] = members
+        for lines in (index, index.T):  # rows, then columns
+            if lines.shape[1] < 4:
                 continue
-            p = pts[run]
-            # Positions along the run as cumulative step lengths: exact for a straight line and, unlike a
-            # projection on the chord, unbiased when a lens bends the line.
-            steps = np.hypot(*(p[1:] - p[:-1]).T)
-            x = np.concatenate([[0.0], np.cumsum(steps)])
-            den = (x[2] - x[1]) * (x[3] - x[0])
-            if abs(den) < 1e-12:
-                strikes[run] += 1
+            # every window of four consecutive labels on every line: shape (n_lines, n_windows, 4)
+            win = np.lib.stride_tricks.sliding_window_view(lines, 4, axis=1)
+            win = win[(win >= 0).all(axis=2)]
+            if len(win) == 0:
                 continue
-            cr = (x[2] - x[0]) * (x[3] - x[1]) / den
-            if abs(cr - CROSS_RATIO_EQUAL_STEPS) / CROSS_RATIO_EQUAL_STEPS > tolerance:
-                strikes[run] += 1
+            p = pts[win]
+            steps = np.hypot(*(p[:, 1:] - p[:, :-1]).transpose(2, 0, 1))
+            x2 = steps[:, 0]
+            x3 = x2 + steps[:, 1]
+            x4 = x3 + steps[:, 2]
+            den = (x3 - x2) * x4
+            with np.errstate(divide="ignore", invalid="ignore"):
+                cr = x3 * (x4 - x2) / den
+            bad = ~(np.abs(cr - CROSS_RATIO_EQUAL_STEPS) / CROSS_RATIO_EQUAL_STEPS <= tolerance)
+            np.add.at(strikes, win[bad].ravel(), 1)
     return strikes
 
 
