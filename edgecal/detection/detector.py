@@ -251,7 +251,9 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
     min_corners = min(b.n_corners for b in target.boards)
     finished = []
     for grid in grids:
-        grid = trim_false_edges(grid, smooth, p.min_contrast)
+        # A grid that already is a complete board needs no trimming: a stray outer line would change its size.
+        if not _is_full_board(grid, by_size):
+            grid = trim_false_edges(grid, smooth, p.min_contrast)
         # Completion is for boards the probe half-saw, not for every fragment of clutter.
         if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) and not _is_full_board(grid, by_size):
             grid = complete_grid(grid, smooth, level.gx, level.gy, max_dim, p, debug.accepted)

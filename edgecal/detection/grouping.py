@@ -12,7 +12,6 @@ have the cross-ratio of four equally spaced points, 4/3 (Eq. 8); points that bre
 from __future__ import annotations
 
 import math
-from collections import deque
 
 import numpy as np
 from numba import njit
@@ -98,6 +97,7 @@ def link_neighbours(pts: np.ndarray, dirs: np.ndarray, max_step: np.ndarray, lin
     return nbr
 
 
+@njit(cache=True, nogil=True)
 def label_components(nbr: np.ndarray, order: np.ndarray, alive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Breadth-first grid labelling over mutual links.
 
@@ -106,38 +106,56 @@ def label_components(nbr: np.ndarray, order: np.ndarray, alive: np.ndarray) -> t
     far end already carries another label is ignored (the walk that got there first wins; the cross-ratio
     check then catches wrong labels).
     """
-    k_pts = len(nbr)
+    k_pts = nbr.shape[0]
     labels = np.full((k_pts, 3), -1, dtype=np.int64)
     axis = np.zeros(k_pts, dtype=np.int64)
-    steps = ((1, 0), (0, 1), (-1, 0), (0, -1))
+    du = np.array([1, 0, -1, 0])
+    dv = np.array([0, 1, 0, -1])
+    queue = np.empty(k_pts, dtype=np.int64)
+    # label -> point of the current component; labels stay within +-k_pts of the seed
+    span = 2 * k_pts + 1
+    used = dict()
+    used[0] = 0
     comp = 0
     for seed in order:
         if not alive[seed] or labels[seed, 0] >= 0:
             continue
-        labels[seed] = (comp, 0, 0)
+        labels[seed, 0] = comp
+        labels[seed, 1] = 0
+        labels[seed, 2] = 0
         axis[seed] = 0
-        queue = deque([seed])
-        used: dict[tuple[int, int], int] = {(0, 0): seed}
-        while queue:
-            i = queue.popleft()
+        used.clear()
+        used[k_pts * span + k_pts] = seed
+        head = 0
+        tail = 1
+        queue[0] = seed
+        while head < tail:
+            i = queue[head]
+            head += 1
             for k in range(4):
                 j = nbr[i, k]
-                if j < 0 or not alive[j]:
+                if j < 0 or not alive[j] or labels[j, 0] >= 0:
                     continue
                 rel = (k - axis[i]) % 4
-                du, dv = steps[rel]
-                u, v = labels[i, 1] + du, labels[i, 2] + dv
-                if labels[j, 0] >= 0:
+                u = labels[i, 1] + du[rel]
+                v = labels[i, 2] + dv[rel]
+                key = (u + k_pts) * span + (v + k_pts)
+                if key in used:
                     continue
-                if (u, v) in used:
+                back = -1
+                for m in range(4):
+                    if nbr[j, m] == i:
+                        back = m
+                        break
+                if back < 0:
                     continue
-                back = np.nonzero(nbr[j] == i)[0]
-                if len(back) == 0:
-                    continue
-                labels[j] = (comp, u, v)
-                axis[j] = (back[0] - (rel + 2)) % 4
-                used[(u, v)] = j
-                queue.append(j)
+                labels[j, 0] = comp
+                labels[j, 1] = u
+                labels[j, 2] = v
+                axis[j] = (back - (rel + 2)) % 4
+                used[key] = j
+                queue[tail] = j
+                tail += 1
         comp += 1
     return labels, axis
 
