@@ -116,7 +116,7 @@ def _run_daemon(cfg: Path, good: dict, notify: NotifySocket, endpoint: str, tmp_
         sub.close()
     text = log.read_text()
     assert code == 0, text
-    assert elapsed < 1.5, f"SIGTERM took {elapsed:.2f} s"
+    assert elapsed < 1.0, f"SIGTERM took {elapsed:.2f} s"
     assert notify.wait_for("STOPPING=1", 1)
     assert "reload failed, keeping the running config" in text and "field 'pose.max_rms_px'" in text
     assert "stopped after" in text and "Traceback" not in text

@@ -226,3 +226,27 @@ def test_reload_moves_the_endpoint_only_if_it_can_bind(sequence: tuple[Path, dic
         sub1.close()
         sub2.close()
     assert loop.stats.reload_failures == 1 and loop.stats.reconnects == 0
+
+
+def test_abort_releases_camera_and_socket_while_a_frame_is_in_flight(sequence: tuple[Path, dict],
+                                                                     tmp_path: Path) -> None:
+    """What `edgecal run` does when a frame outlasts the stop grace period after SIGTERM."""
+    from edgecal.publish import PosePublisher
+    folder, _ = sequence
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", folder, endpoint, source_extra={"loop": True})
+    sub = Subscriber(endpoint)
+    loop = LiveLoop(load_live_config(cfg))
+    th, result = run_in_thread(loop)
+    try:
+        assert sub.wait_for(lambda: len(sub.of("pose")) >= 1)
+        loop.request_stop()
+        loop.abort()
+        PosePublisher(endpoint).close()      # the port is free at once
+        n = len(sub.of("pose"))
+        th.join(10)
+    finally:
+        sub.close()
+    assert not th.is_alive() and result == [0]
+    assert len(sub.of("pose")) == n and sub.of("status")[-1]["state"] == "stopping"
+    assert loop.stats.errors == 0

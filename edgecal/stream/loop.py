@@ -9,6 +9,7 @@ so a signal never interrupts a frame half-way.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
@@ -81,6 +82,10 @@ class LiveLoop:
         self._reload_requested = False
         self._source: Source | None = None
         self._publisher: PosePublisher | None = None
+        # The camera and the socket are used under this lock, so that abort() (another thread, when a
+        # frame takes too long after SIGTERM) can release them while the loop is busy detecting.
+        self._io = threading.RLock()
+        self._aborted = False
         self._pool: ThreadPoolExecutor | None = None
         self._ready_sent = False
         self._last_frame_ns = 0
@@ -100,6 +105,29 @@ class LiveLoop:
     def request_reload(self) -> None:
         """Ask the loop to reload its config file before the next frame (safe from a signal handler)."""
         self._reload_requested = True
+
+    @property
+    def stop_requested_ns(self) -> int:
+        """CLOCK_MONOTONIC of the stop request (0: none yet)."""
+        return self._stop_requested_ns
+
+    def abort(self) -> None:
+        """Release the camera and the socket now, from another thread, while the loop may still be inside a
+        frame; the loop publishes nothing more and ends at its next check. For a stop deadline."""
+        with self._io:
+            if self._aborted:
+                return
+            self._aborted = True
+            self._stop_requested = True
+            self.state = "stopping"
+            self.notifier.stopping()
+            self._close_source()
+            if self._publisher is not None:
+                self._report(time.monotonic_ns())
+                self._publisher.close()
+                self._publisher = None
+        log.info("stopped (aborted in frame) after %d frames, %.0f ms after the stop request", self.stats.frames,
+                 (time.monotonic_ns() - self._stop_requested_ns) / 1e6 if self._stop_requested_ns else 0.0)
 
     # -- the loop ----------------------------------------------------------------------------------------
 
@@ -124,13 +152,19 @@ class LiveLoop:
                     break
             return 0
         finally:
-            self.state = "stopping"
-            self.notifier.stopping()
-            self._close_source()
-            if self._publisher is not None:
-                self._report(time.monotonic_ns())
-                self._publisher.close()
+            with self._io:
+                aborted = self._aborted
+                if not aborted:
+                    self.state = "stopping"
+                    self.notifier.stopping()
+                    self._close_source()
+                    if self._publisher is not None:
+                        self._report(time.monotonic_ns())
+                        self._publisher.close()
+                        self._publisher = None
             self._pool.shutdown(wait=True)
+            if aborted:
+                return 0
             took = f" ({(time.monotonic_ns() - self._stop_requested_ns) / 1e6:.0f} ms after the stop request)" \
                 if self._stop_requested_ns else ""
             log.info("stopped after %d frames%s", self.stats.frames, took)
@@ -162,7 +196,11 @@ class LiveLoop:
                 source.close()
             self._camera_lost(f"cannot open {spec.uri}: {exc}")
             return
-        self._source = source
+        with self._io:
+            if self._aborted:
+                source.close()
+                return
+            self._source = source
         self._last_frame_ns = time.monotonic_ns()
         if self.state == "camera-lost":
             log.info("camera %s reopened", spec.uri)
@@ -180,20 +218,24 @@ class LiveLoop:
         self._backoff_s = min(self._backoff_s * 2, self.config.loop.reconnect_max_s)
 
     def _close_source(self) -> None:
-        if self._source is not None:
-            src, self._source = self._source, None
-            try:
-                self.stats.source_dropped(src.dropped)
-            finally:
-                self.stats.source_closed()
-                src.close()
+        with self._io:
+            if self._source is not None:
+                src, self._source = self._source, None
+                try:
+                    self.stats.source_dropped(src.dropped)
+                finally:
+                    self.stats.source_closed()
+                    src.close()
 
     def _step(self) -> bool:
         """Read and process one frame; False when a finite source has ended and the loop should stop."""
-        assert self._source is not None
         t_read = time.monotonic_ns()
         try:
-            frame = self._source.read(READ_SLICE_S)
+            with self._io:
+                if self._source is None:         # released by abort()
+                    return True
+                frame = self._source.read(READ_SLICE_S)
+                self.stats.source_dropped(self._source.dropped)
         except InputError as exc:                # an unreadable frame of a replay: skip it
             self.stats.corrupt_frames += 1
             self._rate_limited_error(f"unreadable frame skipped: {exc}")
@@ -216,7 +258,6 @@ class LiveLoop:
                               "source (stereo:LEFT,RIGHT, depthai:, or a replay of left/ and right/)")
         self._last_frame_ns = time.monotonic_ns()
         self._backoff_s = self.config.loop.reconnect_min_s
-        self.stats.source_dropped(self._source.dropped)
         self._process(frame)
         if not self._ready_sent:
             self._ready_sent = True
@@ -267,11 +308,12 @@ class LiveLoop:
             pose = Pose.invalid(f"internal error: {type(exc).__name__}")
         now = time.monotonic_ns()
         capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver == "replay")
-        assert self._publisher is not None
         msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now)
         msg["latency_ns"] = int(now - capture_ns)
         msg["latency_from"] = _basis
-        self._publisher.send_pose(msg)
+        with self._io:
+            if self._publisher is not None:
+                self._publisher.send_pose(msg)
         self.stats.frame_done(now - capture_ns, pose.valid, failed_images)
 
     def _report(self, now: int) -> None:
@@ -283,41 +325,45 @@ class LiveLoop:
                  figures["dropped_frames"], figures["detection_failures"], figures["corrupt_frames"],
                  figures["poses_invalid"], f" ({self._last_message})" if self._last_message else "")
         figures["source"] = self.config.source.uri
-        if self._publisher is not None:
-            self._publisher.send_status(status_message(self.state, figures, now, self._last_message))
+        with self._io:
+            if self._publisher is not None:
+                self._publisher.send_status(status_message(self.state, figures, now, self._last_message))
         self.notifier.watchdog()
         self.notifier.status(f"{self.state}: {figures['fps']} fps, p99 {lat['p99']} ms")
         self._next_status_ns = now + int(self.config.loop.status_period_s * 1e9)
 
+    def _reload_failed(self, why: str) -> None:
+        self.stats.reload_failures += 1
+        self._last_message = f"reload failed, keeping the running config: {why}"
+        log.error("%s", self._last_message)
+        self.notifier.ready()
+
     def _do_reload(self) -> None:
-        """Reload the config file; a broken file is logged and the running config kept."""
+        """Reload the config file; a broken file (or an endpoint that cannot be bound) is logged and the
+        running config kept. The camera is reopened only when the source settings changed."""
         self.notifier.reloading()
         try:
             new = load_live_config(self.config.path)
         except EdgecalError as exc:
-            self.stats.reload_failures += 1
-            self._last_message = f"reload failed, keeping the running config: {exc}"
-            log.error("%s", self._last_message)
-            self.notifier.ready()
+            self._reload_failed(str(exc))
             return
         old = self.config
-        if new.publish != old.publish:
-            assert self._publisher is not None
-            if new.publish.endpoint != old.publish.endpoint:
-                # Bind the new endpoint before letting go of the old one: if it is taken, nothing changes.
-                try:
+        with self._io:
+            if self._aborted or self._publisher is None:
+                return
+            if new.publish != old.publish:
+                if new.publish.endpoint != old.publish.endpoint:
+                    # Bind the new endpoint before letting go of the old one: if it is taken, nothing changes.
+                    try:
+                        publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
+                    except DeviceError as exc:
+                        self._reload_failed(str(exc))
+                        return
+                    self._publisher.close()
+                else:
+                    self._publisher.close()
                     publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
-                except DeviceError as exc:
-                    self.stats.reload_failures += 1
-                    self._last_message = f"reload failed, keeping the running config: {exc}"
-                    log.error("%s", self._last_message)
-                    self.notifier.ready()
-                    return
-                self._publisher.close()
-            else:
-                self._publisher.close()
-                publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
-            self._publisher = publisher
+                self._publisher = publisher
         if new.source != old.source or new.loop.latest_frame_wins != old.loop.latest_frame_wins:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
