@@ -1,9 +1,10 @@
 """The live loop: stereo source -> detect left and right in parallel -> pose -> publish.
 
 State lives here (the camera, the socket, the counters); the work per frame is the pure functions of
-edgecal.detection and edgecal.pose. The loop runs in one thread and is steered from outside only
-through :meth:`LiveLoop.request_stop` and :meth:`LiveLoop.request_reload` (signal handlers call them),
-so a signal never interrupts a frame half-way.
+edgecal.detection and edgecal.pose (the right image is detected in a second thread while the loop's
+own thread does the left one). The loop is steered from outside only through
+:meth:`LiveLoop.request_stop` and :meth:`LiveLoop.request_reload` (signal handlers call them), so a
+signal never interrupts a frame half-way; :meth:`LiveLoop.abort` is the deadline behind a stop request.
 """
 
 from __future__ import annotations
