@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from edgecal.detection.types import Detection
-from edgecal.pose import (Pose, PoseSettings, QualityBounds, StereoCameras, estimate_pose, fit_rigid,
+from edgecal.pose import (PoseSettings, QualityBounds, StereoCameras, estimate_pose, fit_rigid,
                           triangulate_pixels)
 from edgecal.targets import Board, Target
 
