@@ -32,6 +32,9 @@ from edgecal.images import as_grey
 from edgecal.targets import Board, Target
 
 DEFAULT_PARAMS = DetectorParams()
+# Closest two corners of a board may be at half resolution before its corners are not trusted there
+# (sub-pixel windows need a few pixels of their own; the full-resolution search decides below this).
+MIN_HALF_SPACING_PX = 5.0
 
 
 def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, radii: np.ndarray,
@@ -181,8 +184,8 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
             continue
         xy = 2.0 * np.array(list(grid.values()))
         spacing = _nearest_spacing(xy)
-        if spacing.min() < 16.0:
-            continue  # under 8 px at half resolution: leave it to the full-resolution search
+        if spacing.min() < 2.0 * MIN_HALF_SPACING_PX:
+            continue  # too small at half resolution: leave it to the full-resolution search
         xy = refine_corners(level.smooth, xy, spacing)
         seeds.append(dict(zip(grid.keys(), xy)))
     _boards_from_grids(level, seeds, target, p, debug)
@@ -196,14 +199,17 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
 def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorParams) -> DetectionDebug | None:
     """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution.
 
-    None when a board was too small at half resolution to trust (corners under 8 px apart there) or does not
+    None when a board was too small at half resolution to trust (corners closer than MIN_HALF_SPACING_PX
+    there) or does not
     stay regular after refinement: the caller then works at full resolution.
     """
     for det in half.detections:
         spacing = 2.0 * _nearest_spacing(det.corners)
-        if spacing.min() < 16.0:
+        if spacing.min() < 2.0 * MIN_HALF_SPACING_PX:
             return None
-        det.corners = refine_corners(level.smooth, 2.0 * det.corners, spacing)
+        # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
+        xy = refine_corners(level.smooth, 2.0 * det.corners, spacing, max_move_px=3.0)
+        det.corners = refine_corners(level.smooth, xy, spacing)
         if not grid_is_regular(det.corners, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
     return DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
