@@ -15,19 +15,17 @@ uint16, grey and BGR, bit for bit; replaying gives back the same pixels and ``st
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-import cv2
 import numpy as np
 
 from edgecal.drivers.base import Frame, Source, StereoFrame
 from edgecal.errors import InputError
+from edgecal.fileio import png_bytes, write_atomic
 
 MANIFEST = "manifest.json"
 FORMAT = "edgecal-recording"
@@ -36,27 +34,11 @@ VERSION = 1
 _FRAME_DIRS = ("frames", "left", "right")
 
 
-def write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file in the same folder and os.replace."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def encode_png(image: np.ndarray, name: str) -> bytes:
     """Lossless PNG bytes of a uint8/uint16 grey or BGR image."""
     if image.dtype not in (np.uint8, np.uint16):
         raise InputError(f"{name}: cannot record a {image.dtype} image (uint8 or uint16 only)")
-    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise InputError(f"{name}: PNG encoding failed for an image of shape {image.shape}")
-    return buf.tobytes()
+    return png_bytes(image)
 
 
 def _frame_entry(frame: Frame, file: str) -> dict[str, Any]:

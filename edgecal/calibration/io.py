@@ -13,7 +13,6 @@ os.replace, so a reader never sees half a file; an existing file is replaced onl
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import yaml
 from edgecal.calibration.refine import INTRINSIC_NAMES
 from edgecal.calibration.types import Calibration, Camera
 from edgecal.errors import ConfigError, InputError
+from edgecal.fileio import write_via_temp
 
 
 def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
@@ -41,18 +41,6 @@ def check_writable(paths: list[Path], force: bool) -> None:
             raise InputError(f"{p}: the folder {p.parent} does not exist (create it first)")
         if p.exists() and not force:
             raise InputError(f"{p}: the file exists; pass --force to replace it")
-
-
-def _atomic(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(dir=str(path.parent), prefix=f".{path.name}.", suffix=".tmp.yaml")
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _std_row(std: dict[str, float]) -> np.ndarray:
@@ -135,10 +123,11 @@ def write_calibration(cal: Calibration, path: str | Path, force: bool = False) -
     rig = Path(path)
     infos = camera_info_paths(rig, cal.is_stereo)
     check_writable([rig, *infos], force)
-    _atomic(rig, lambda tmp: _write_rig(cal, tmp))
+    # the .yaml suffix matters: cv2.FileStorage picks its format from the file name
+    write_via_temp(rig, lambda tmp: _write_rig(cal, tmp), suffix=".tmp.yaml")
     for i, p in enumerate(infos):
         text = yaml.safe_dump(camera_info(cal, i), sort_keys=False, default_flow_style=None)
-        _atomic(p, lambda tmp, text=text: Path(tmp).write_text(text, encoding="utf-8"))
+        write_via_temp(p, lambda tmp, text=text: Path(tmp).write_text(text, encoding="utf-8"), suffix=".tmp.yaml")
     return [rig, *infos]
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import cv2
@@ -11,6 +9,7 @@ import numpy as np
 
 from edgecal.calibration.io import check_writable
 from edgecal.calibration.types import Calibration
+from edgecal.fileio import png_bytes, write_atomic
 
 VECTOR_GAIN = 20.0  # residual vectors are drawn this many times longer than they are
 
@@ -132,16 +131,6 @@ def residual_histogram(cal: Calibration, bins: int = 20) -> np.ndarray:
                      f"residual length histogram (px), {len(norms)} corners, RMS {cal.rms_px:.3f} px", "corners")
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
-    ok, buf = cv2.imencode(".png", image)
-    if not ok:
-        raise OSError(f"cannot encode {path}")
-    fd, tmp = tempfile.mkstemp(dir=str(path.parent), prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "wb") as f:
-        f.write(buf.tobytes())
-    os.replace(tmp, path)
-
-
 def write_report(cal: Calibration, images: list[list[np.ndarray]], folder: str | Path,
                  force: bool = False) -> list[Path]:
     """Write overlays (one per camera and view), the histogram, the per-board chart and summary.txt.
@@ -166,11 +155,5 @@ def write_report(cal: Calibration, images: list[list[np.ndarray]], folder: str |
     plan.append((out / "summary.txt", format_summary(cal) + "\n"))
     check_writable([p for p, _ in plan], force)
     for p, content in plan:
-        if isinstance(content, str):
-            fd, tmp = tempfile.mkstemp(dir=str(p.parent), prefix=f".{p.name}.", suffix=".tmp")
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                f.write(content)
-            os.replace(tmp, p)
-        else:
-            _write_png(p, content)
+        write_atomic(p, content.encode("utf-8") if isinstance(content, str) else png_bytes(content))
     return [p for p, _ in plan]
