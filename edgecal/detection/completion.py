@@ -203,19 +203,21 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
                 h = _local_homography(grid, u - 2, u + 2, v - 2, v + 2)
             if h is not None:
                 p, sp = _predict(h, [(u, v)])
+                if not (np.isfinite(p).all() and np.isfinite(sp).all()):
+                    continue  # on the horizon of the local homography: no prediction
                 preds.append(p[0])
                 keys.append((u, v))
                 spac.append(sp[0])
-        # Sides: a whole new row or column from the three nearest ones.
+        # Sides: a whole new row or column, each point extrapolated along its own grid line.
         sides = []
         if u1 - u0 + 1 < max_dim:
-            sides += [([(u0 - 1, v) for v in range(v0, v1 + 1)], (u0, u0 + 2, v0, v1), (-1, 0)),
-                      ([(u1 + 1, v) for v in range(v0, v1 + 1)], (u1 - 2, u1, v0, v1), (1, 0))]
+            sides += [([(u0 - 1, v) for v in range(v0, v1 + 1)], (-1, 0)),
+                      ([(u1 + 1, v) for v in range(v0, v1 + 1)], (1, 0))]
         if v1 - v0 + 1 < max_dim:
-            sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (u0, u1, v0, v0 + 2), (0, -1)),
-                      ([(u, v1 + 1) for u in range(u0, u1 + 1)], (u0, u1, v1 - 2, v1), (0, 1))]
+            sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (0, -1)),
+                      ([(u, v1 + 1) for u in range(u0, u1 + 1)], (0, 1))]
         groups: list[tuple[int, list | None, tuple[int, int] | None]] = [(len(keys), None, None)]
-        for labels, _box, outward in sides:
+        for labels, outward in sides:
             p, sp, ok_labels = _extrapolate(grid, labels, outward)
             if not ok_labels:
                 continue

@@ -26,9 +26,10 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
     out = np.array(pts, dtype=np.float32).reshape(-1, 1, 2)
     if len(out) == 0:
         return out.reshape(-1, 2).astype(np.float64)
-    half = subpixel_window(spacing)
+    finite = np.isfinite(out[:, 0]).all(axis=1) & np.isfinite(np.asarray(spacing, np.float64))
+    half = np.where(finite, subpixel_window(np.where(finite, spacing, 6.0)), -1)
     h, w = smooth.shape
-    for hw in np.unique(half):
+    for hw in np.unique(half[half > 0]):
         sel = np.nonzero(half == hw)[0]
         # cornerSubPix needs the window inside the image.
         inside = ((out[sel, 0, 0] > hw + 1) & (out[sel, 0, 0] < w - hw - 2)
