@@ -52,15 +52,10 @@ def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, 
     return p, np.min(steps, axis=0)
 
 
-def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
-                             outward: tuple[int, int], smooth: np.ndarray, min_contrast: float) -> bool:
-    """Whether the squares just outside a grid line alternate black/white, as they must at a row of corners.
-
-    A board's outermost squares meet its white margin in points the probe can take for X-corners (the
-    margin is white on both sides, the background beyond may be dark). Such a line is geometrically a
-    perfect grid row; what gives it away is the uniform margin beyond it. Squares outside the image are
-    not judged (True).
-    """
+def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
+                  outward: tuple[int, int], smooth: np.ndarray) -> np.ndarray | None:
+    """Mean intensity of the squares just outside a grid line, in order along it (None: not measurable,
+    e.g. outside the image or too short)."""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
     ordered = sorted(line, key=lambda l: l[0] * along[0] + l[1] * along[1])
@@ -84,27 +79,50 @@ def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list
         if a0 is None or a1 is None or b0 is None or b1 is None:
             continue
         cells.append(0.25 * (a0 + a1 + b0 + b1))
-    if len(cells) < 2:
-        return True
-    xy = np.asarray(cells)
+    if len(cells) < 3:
+        return None
     hh, ww = smooth.shape
     vals = []
-    for x, y in xy:
+    for x, y in cells:
         if not (1 <= x < ww - 2 and 1 <= y < hh - 2):
-            return True
+            return None
         xi, yi = int(round(x)), int(round(y))
         vals.append(float(smooth[yi - 1:yi + 2, xi - 1:xi + 2].mean()))
-    diffs = np.diff(vals)
-    if len(diffs) == 0:
+    return np.asarray(vals)
+
+
+def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
+                             outward: tuple[int, int], smooth: np.ndarray, min_contrast: float) -> bool:
+    """Whether the squares just outside a grid line alternate black/white, as they must at a row of corners.
+
+    A board's outermost squares meet its white margin in points the probe can take for X-corners (the
+    margin is white on both sides, the background beyond may be dark). Such a line is geometrically a
+    perfect grid row; what gives it away is the uniform margin beyond it. This is the positive evidence a
+    new outer line needs; squares that cannot be measured (outside the image) count as alternating.
+    """
+    vals = _cells_beyond(grid, line, outward, smooth)
+    if vals is None:
         return True
-    alternating = np.sum(diffs[1:] * diffs[:-1] < 0) if len(diffs) > 1 else 1
+    diffs = np.diff(vals)
+    alternating = np.sum(diffs[1:] * diffs[:-1] < 0)
     strong = np.abs(diffs) >= 0.5 * min_contrast
-    return bool(strong.mean() >= 0.7 and (len(diffs) == 1 or alternating >= 0.7 * (len(diffs) - 1)))
+    return bool(strong.mean() >= 0.7 and alternating >= 0.7 * (len(diffs) - 1))
+
+
+def squares_beyond_uniform(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
+                           outward: tuple[int, int], smooth: np.ndarray, min_contrast: float) -> bool:
+    """Whether the squares just outside a grid line are one uniform area (a board's margin): the evidence
+    needed to remove a line already in a grid (where extrapolation is poor, e.g. at a fisheye rim, cells
+    land anywhere; that is not uniform, and the line stays)."""
+    vals = _cells_beyond(grid, line, outward, smooth)
+    if vals is None:
+        return False
+    return bool(np.mean(np.abs(np.diff(vals)) < min_contrast) >= 0.7)
 
 
 def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray,
                      min_contrast: float) -> dict[tuple[int, int], np.ndarray]:
-    """Drop outer rows/columns whose outside squares do not alternate (see squares_beyond_alternate)."""
+    """Drop outer rows/columns with a uniform area beyond them (see squares_beyond_uniform)."""
     grid = dict(grid)
     changed = True
     while changed and len(grid) >= 4:
@@ -115,7 +133,7 @@ def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray
                                      (1, min(vs), (0, -1)), (1, max(vs), (0, 1))):
             line = [k for k in grid if k[axis] == value]
             # A lone point out on a line of its own is never trusted; longer lines must have squares beyond.
-            if len(line) < 2 or not squares_beyond_alternate(grid, line, outward, smooth, min_contrast):
+            if len(line) < 2 or squares_beyond_uniform(grid, line, outward, smooth, min_contrast):
                 for k in line:
                     del grid[k]
                 changed = True
