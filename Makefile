@@ -6,12 +6,14 @@
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
-# Debian packages the tests need (the Aravis fake camera, libdc1394, systemd-analyze, PyGObject's build deps).
-SYSTEM_PACKAGES ?= aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config libdc1394-25 systemd
+# Debian packages the tests need (the Aravis fake camera, libdc1394, systemd-analyze, PyGObject's build deps;
+# PyGObject and pycairo are built from source, so Debian's python3 also needs its headers and venv).
+SYSTEM_PACKAGES ?= aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config libdc1394-25 systemd python3-dev python3-venv
 
 .PHONY: demo test bench system-deps clean
 
-$(VENV)/.installed: pyproject.toml
+# order-only: `make demo` builds PyGObject too, so it needs the Debian packages first (without forcing a reinstall)
+$(VENV)/.installed: pyproject.toml | system-deps
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "edgecal needs Python 3.10 or newer")'
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
