@@ -335,7 +335,7 @@ def make_edgecal() -> Callable:
         dets = edgecal_detect(grey, target)
         out = [FoundGrid(np.asarray(d.corners, dtype=np.float64).reshape(-1, 2),
                          np.asarray(d.ids, dtype=np.int64).reshape(-1, 2),
-                         (int(d.grid[0]), int(d.grid[1])), bool(d.complete)) for d in dets]
+                         (int(d.grid[0]), int(d.grid[1])), bool(d.complete), str(d.board)) for d in dets]
         return out, len(out)
 
     return detect
@@ -415,6 +415,7 @@ class SetResult:
             "found": n_found + sum(plaus),
             "false_boards": sum(s.false_boards for s in scored),
             "partial": sum(s.partial for s in scored),
+            "misnamed": sum(s.misnamed for s in scored),
             "reported_boards": sum(r.reported for r in self.images),
             "rms_px": corner_rms(errs),
             "corners_scored": int(errs.size),
@@ -556,6 +557,8 @@ def format_table(bset: BenchSet, results: dict[str, SetResult]) -> str:
         elif base:
             rms_ratio = "1.00x"
         err = f"  ({s['errors']} errors)" if s["errors"] else ""
+        if s["misnamed"]:
+            err += f"  ({s['misnamed']} found boards given another board's name)"
         lines.append(f"{name:<13} {found:>9} {rate:>6} {s['false_boards']:>6} {s['partial']:>4} "
                      f"{s['reported_boards']:>8} {_fmt(s['rms_px'], 3):>7} {rms_ratio:>8} "
                      f"{_fmt(s['median_ms']):>10} {_fmt(s['p90_ms']):>9} {ms_ratio:>11}{err}")
@@ -599,6 +602,8 @@ def format_markdown(all_results: list[tuple[BenchSet, dict[str, SetResult]]], de
                 parts.append(f"{s['rms_px']:.3f} px")
             if s["false_boards"] or (not s["truth_boards"] and not bset.count_only):
                 parts.append(f"{s['false_boards']} false")
+            if s["misnamed"]:
+                parts.append(f"{s['misnamed']} misnamed")
             found_cells.append(" · ".join(parts))
         if not bset.timing_only:
             found_rows.append(f"| {bset.name} | {len(bset.items)} | " + " | ".join(found_cells) + " |")
@@ -655,7 +660,7 @@ def result_json(bset: BenchSet, results: dict[str, SetResult]) -> dict:
                          "grids": [list(g) for g in ir.grids]}
             if ir.score is not None:
                 rec.update(truth=ir.score.n_truth, found=ir.score.n_found, false=ir.score.false_boards,
-                           partial=ir.score.partial,
+                           partial=ir.score.partial, misnamed=ir.score.misnamed,
                            rms_px=_json_safe(corner_rms(ir.score.found_errors())))
             if ir.plausible is not None:
                 rec["plausible"] = ir.plausible
@@ -691,10 +696,11 @@ def select_sets(root: Path, patterns: list[str]) -> list[BenchSet]:
         sets.append(s)
     sets.extend(rendered_sets(wanted))
     if any(fnmatch.fnmatch("timing/1280x800", p) or p == "timing" for p in patterns):
-        # the frames come from the synthetic sets; ones not selected are loaded for this set alone
+        # the frames come from the synthetic and rendered sets; ones not selected are loaded for it alone
         loaded = {x.name for x in sets}
         extra = [x for n in SYNTHETIC_SETS if f"synthetic/{n}" not in loaded
                  for x in [synthetic_set(root, n)] if x is not None]
+        extra += rendered_sets(lambda n: n not in loaded)
         t = timing_set(sets + extra)
         if t is not None:
             sets.append(t)

@@ -78,12 +78,16 @@ class GroundTruth:
 
 @dataclass(frozen=True)
 class FoundGrid:
-    """A detector's result for one board: corners (N, 2), ids (N, 2) (col, row), grid (cols, rows)."""
+    """A detector's result for one board: corners (N, 2), ids (N, 2) (col, row), grid (cols, rows).
+
+    ``name`` is the target board the detector says it is ("" when it does not say).
+    """
 
     corners: np.ndarray
     ids: np.ndarray
     grid: tuple[int, int]
     complete: bool = True
+    name: str = ""
 
 
 @dataclass(frozen=True)
@@ -110,13 +114,16 @@ class ImageScore:
     ``matches[i]`` is the match of truth board i (None when no detection was assigned to it);
     ``false_boards`` counts detections that lie on no truth board; ``partial`` counts detections that
     lie on a truth board without being its complete, correctly ordered match (a sub-grid, a grid of
-    another size, a mis-ordering, or a second detection of a board already matched).
+    another size, a mis-ordering, or a second detection of a board already matched); ``misnamed``
+    counts found boards whose detector-given name is not the truth board's (boards of one size on a
+    calibration box must still be told apart).
     """
 
     n_truth: int
     matches: list[BoardMatch | None] = field(default_factory=list)
     false_boards: int = 0
     partial: int = 0
+    misnamed: int = 0
 
     @property
     def n_found(self) -> int:
@@ -248,7 +255,7 @@ def score_image(found: Sequence[FoundGrid], truth: GroundTruth, policy: str = "b
     if min_fraction is None:
         min_fraction = 1.0 if truth.exact else 0.75
     score = ImageScore(n_truth=len(truth.boards), matches=[None] * len(truth.boards))
-    claims: list[tuple[tuple[int, int, float], int, BoardMatch | None]] = []
+    claims: list[tuple[tuple[int, int, float], int, BoardMatch | None, str]] = []
     for f in found:
         on = [lies_on(f, tb, max_error_px) for tb in truth.boards]
         if not on or max(on) < 0.5:
@@ -257,13 +264,15 @@ def score_image(found: Sequence[FoundGrid], truth: GroundTruth, policy: str = "b
         b = int(np.argmax(on))
         m = match_board(f, truth.boards[b], policy, max_error_px, min_fraction)
         rank = (int(m.found) if m else 0, int(m.correct.sum()) if m else 0, on[b])
-        claims.append((rank, b, m))
+        claims.append((rank, b, m, f.name))
     claims.sort(key=lambda c: c[0], reverse=True)
-    for _, b, m in claims:
+    for _, b, m, name in claims:
         if score.matches[b] is None and m is not None:
             score.matches[b] = m
             if not m.found:
                 score.partial += 1
+            elif name and name != truth.boards[b].name:
+                score.misnamed += 1
         else:
             score.partial += 1
     return score

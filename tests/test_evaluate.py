@@ -133,6 +133,10 @@ def test_multi_board_image_assigns_each_detection_to_its_board():
     s = score_image(found, truth_of(a, b))
     assert s.n_found == 2 and s.false_boards == 0
     assert len(s.found_errors()) == 29 and np.allclose(s.found_errors(), 0.0)
+    assert s.misnamed == 0
+    named = [FoundGrid(a.corners, a.ids, (5, 4), name=b.name), FoundGrid(b.corners, b.ids, (3, 3), name=b.name)]
+    s = score_image(named, truth_of(a, b))
+    assert s.n_found == 2 and s.misnamed == 1
     only_one = score_image(found[:1], truth_of(a, b))
     assert only_one.n_found == 1 and only_one.matches[0] is None
     sub = FoundGrid(a.corners[:10], a.ids[:10], (5, 4), complete=False)
