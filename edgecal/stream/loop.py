@@ -92,6 +92,10 @@ class LiveLoop:
         self._last_frame_ns = 0
         self._backoff_s = config.loop.reconnect_min_s
         self._next_open_ns = 0
+        # Opening a camera can block for seconds (a GigE camera that does not answer); it runs in its own
+        # thread so that status and the watchdog keep flowing meanwhile.
+        self._opener: threading.Thread | None = None
+        self._opened: tuple[Source | None, str] | None = None
         self._next_status_ns = 0
         self._last_message = ""
         self._last_error_log_ns = 0
@@ -164,6 +168,11 @@ class LiveLoop:
                         self._publisher.close()
                         self._publisher = None
             self._pool.shutdown(wait=True)
+            if self._opener is not None:
+                self._opener.join(0.2)
+            if self._opened is not None and self._opened[0] is not None:
+                self._opened[0].close()
+                self._opened = None
             if aborted:
                 return 0
             took = f" ({(time.monotonic_ns() - self._stop_requested_ns) / 1e6:.0f} ms after the stop request)" \
@@ -180,10 +189,38 @@ class LiveLoop:
         log.info("detector ready (%.1f s)", time.monotonic() - t0)
 
     def _try_open(self, now: int) -> None:
-        """Open the source when its back-off has passed; otherwise wait (a slice at a time)."""
-        if now < self._next_open_ns:
-            time.sleep(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
+        """Open the source when its back-off has passed, in a background thread; take its result when done."""
+        if self._opener is None:
+            if now < self._next_open_ns:
+                time.sleep(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
+                return
+            self._opened = None
+            self._opener = threading.Thread(target=self._open_in_background, name="open-source", daemon=True)
+            self._opener.start()
             return
+        if self._opener.is_alive():
+            self._opener.join(READ_SLICE_S)
+            return
+        self._opener = None
+        source, error = self._opened or (None, "the source opener ended without a result")
+        self._opened = None
+        if source is None:
+            self._camera_lost(error)
+            return
+        with self._io:
+            if self._aborted or self._stop_requested:
+                source.close()
+                return
+            self._source = source
+        self._last_frame_ns = time.monotonic_ns()
+        if self.state == "camera-lost":
+            log.info("camera %s reopened", self.config.source.uri)
+            self.stats.reconnects += 1
+        self.state = "running" if self._ready_sent else "starting"
+        self._last_message = ""
+
+    def _open_in_background(self) -> None:
+        """Create and open the configured source; leaves (source, "") or (None, why) in self._opened."""
         spec = self.config.source
         source = None
         try:
@@ -195,19 +232,12 @@ class LiveLoop:
         except DeviceError as exc:
             if source is not None:
                 source.close()
-            self._camera_lost(f"cannot open {spec.uri}: {exc}")
+            self._opened = (None, f"cannot open {spec.uri}: {exc}")
             return
-        with self._io:
-            if self._aborted:
-                source.close()
-                return
-            self._source = source
-        self._last_frame_ns = time.monotonic_ns()
-        if self.state == "camera-lost":
-            log.info("camera %s reopened", spec.uri)
-            self.stats.reconnects += 1
-        self.state = "running" if self._ready_sent else "starting"
-        self._last_message = ""
+        if self._stop_requested or self._aborted:
+            source.close()  # the loop has gone: nobody else would release the camera
+            return
+        self._opened = (source, "")
 
     def _camera_lost(self, why: str) -> None:
         self._close_source()
