@@ -113,7 +113,8 @@ def test_board_needs_square_size(box_pair, tmp_path, capsys):
     assert rc == 2 and "--square-mm" in _error_line(capsys)
 
 
-REAL = __import__("pathlib").Path("/work/shared/data/real/opencv_stereo_9x6")
+# ../shared beside the repository (as in CI)
+REAL = __import__("pathlib").Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opencv_stereo_9x6"
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="shared real data not present")

@@ -13,7 +13,8 @@ from edgecal.calibration.types import CornerSet, Pose
 from edgecal.targets import planar_target
 
 SIZE = (640, 480)
-REAL = Path("/work/shared/data/real/opencv_stereo_9x6")
+# ../shared beside the repository (as in CI)
+REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opencv_stereo_9x6"
 
 
 def _views(n=8, noise=0.1, seed=0):

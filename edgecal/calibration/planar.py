@@ -124,6 +124,9 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         good = [i for i in range(len(index)) if i not in set(bad)]
         cams_views = [[v[i] for i in good] for v in cams_views]
         index = [index[i] for i in good]
+    if len(per_cam[0][2]) != len(index):
+        # the last rejection round removed views: solve once more on the views that are kept
+        per_cam = [_calibrate_opencv(v, image_size, flags) for v in cams_views]
     for c, v in enumerate(cams_views):
         cov = coverage(v, image_size)
         notes.append(f"{'left' if c == 0 else 'right' if stereo else 'camera'} coverage {100 * cov:.0f} % of the image")
