@@ -124,13 +124,7 @@ class LiveLoop:
                 return
             self._aborted = True
             self._stop_requested = True
-            self.state = "stopping"
-            self.notifier.stopping()
-            self._close_source()
-            if self._publisher is not None:
-                self._report(time.monotonic_ns())
-                self._publisher.close()
-                self._publisher = None
+            self._release_io()
         log.info("stopped (aborted in frame) after %d frames, %.0f ms after the stop request", self.stats.frames,
                  (time.monotonic_ns() - self._stop_requested_ns) / 1e6 if self._stop_requested_ns else 0.0)
 
@@ -160,13 +154,7 @@ class LiveLoop:
             with self._io:
                 aborted = self._aborted
                 if not aborted:
-                    self.state = "stopping"
-                    self.notifier.stopping()
-                    self._close_source()
-                    if self._publisher is not None:
-                        self._report(time.monotonic_ns())
-                        self._publisher.close()
-                        self._publisher = None
+                    self._release_io()
             self._pool.shutdown(wait=True)
             if self._opener is not None:
                 self._opener.join(0.2)
@@ -247,6 +235,16 @@ class LiveLoop:
         self._last_message = why
         self._next_open_ns = time.monotonic_ns() + int(self._backoff_s * 1e9)
         self._backoff_s = min(self._backoff_s * 2, self.config.loop.reconnect_max_s)
+
+    def _release_io(self) -> None:
+        """Say "stopping", release the camera, publish a last status and close the socket (under _io)."""
+        self.state = "stopping"
+        self.notifier.stopping()
+        self._close_source()
+        if self._publisher is not None:
+            self._report(time.monotonic_ns())
+            self._publisher.close()
+            self._publisher = None
 
     def _close_source(self) -> None:
         with self._io:
