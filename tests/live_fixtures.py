@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import socket
+import time
 from pathlib import Path
 
 import cv2
@@ -11,6 +12,16 @@ import numpy as np
 import yaml
 
 from edgecal.synth import scenes, writer
+
+
+def wait_until(condition, timeout_s: float) -> bool:
+    """Poll ``condition()`` every 20 ms until it is true (True) or ``timeout_s`` passes (False)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return False
 
 
 def free_endpoint() -> str:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from live_fixtures import free_endpoint, render_robot, write_config
+from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 from test_stream import Subscriber
 
 N_FRAMES = 3
@@ -48,12 +48,7 @@ class NotifySocket:
                 pass
 
     def wait_for(self, line: str, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if any(line in m.splitlines() for m in list(self.received)):
-                return True
-            time.sleep(0.02)
-        return False
+        return wait_until(lambda: any(line in m.splitlines() for m in list(self.received)), timeout_s)
 
     def close(self) -> None:
         self._stop.set()

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from edgecal.errors import ConfigError
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.loop import check_image
-from live_fixtures import free_endpoint, render_robot, write_config
+from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 
 N_FRAMES = 4
 
@@ -50,12 +50,7 @@ class Subscriber:
         return [m for m in list(self.messages) if m["type"] == kind]
 
     def wait_for(self, condition, timeout_s: float = 20.0) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if condition():
-                return True
-            time.sleep(0.02)
-        return False
+        return wait_until(condition, timeout_s)
 
     def close(self) -> None:
         self._stop.set()
