@@ -11,7 +11,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from edgecal.evaluate import ground_truth_from_mapping, score_image

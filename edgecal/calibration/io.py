@@ -12,7 +12,6 @@ os.replace, so a reader never sees half a file; an existing file is replaced onl
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 

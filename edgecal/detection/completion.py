@@ -15,7 +15,8 @@ import cv2
 import numpy as np
 
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.probe import EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M_SIGN_FRAC, probe_candidates
+from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M_SIGN_FRAC, probe_candidates,
+                                     probe_quality)
 from edgecal.detection.subpixel import refine_corners
 
 
@@ -141,15 +142,17 @@ def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray
     return grid
 
 
-def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray, spacing: np.ndarray,
-            params: DetectorParams, inside_grid: np.ndarray,
-            accepted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray,
+                       spacing: np.ndarray, params: DetectorParams, pinned: np.ndarray,
+                       accepted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refine predicted corners and keep those the probe confirms near their prediction.
 
-    A point the probe already accepted within 0.4 x spacing of a prediction is taken as it is (grouping may
-    have missed the link, e.g. along a line a fisheye lens bends hard). Holes inside a grid
-    (``inside_grid``) are pinned down by neighbours on all sides, so the probe only has to see a corner
-    there (thresholds relaxed further); new rows outside must pass the probe properly.
+    Returns (refined (M, 2), good (M,) bool, quality (M,) as probe_quality). A point the probe already
+    accepted within 0.4 x spacing of a prediction is taken as it is (grouping may have missed the link,
+    e.g. along a line a fisheye lens bends hard). Predictions that are ``pinned`` down independently
+    (holes inside a grid: neighbours on all sides; a tracked board: the pose) only need the probe to see
+    a corner there (thresholds relaxed further); the others (new rows outside a grid) must pass the probe
+    properly. Either way the refinement must stay within 0.25 x spacing of the prediction.
     """
     if accepted is not None and len(accepted):
         from scipy.spatial import cKDTree
@@ -168,10 +171,10 @@ def _verify(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarra
         gx, gy, smooth, np.ascontiguousarray(refined), np.ascontiguousarray(radii), params.probe_angles,
         params.probe_inner_radius_px, EDGE_ACROSS_RAY, math.radians(params.angle_diff_max_deg),
         params.sign_fraction, params.min_contrast * 0.5, params.min_peak_ratio * 0.8)
-    hole_ok = ((meas[:, M_ANGLE_ERR] < math.radians(1.5 * params.angle_diff_max_deg))
-               & (meas[:, M_SIGN_FRAC] >= 0.6) & (meas[:, M_CONTRAST] >= 0.5 * params.min_contrast))
+    pinned_ok = ((meas[:, M_ANGLE_ERR] < math.radians(1.5 * params.angle_diff_max_deg))
+                 & (meas[:, M_SIGN_FRAC] >= 0.6) & (meas[:, M_CONTRAST] >= 0.5 * params.min_contrast))
     near = np.linalg.norm(refined - preds, axis=1) < 0.25 * spacing
-    return refined, (ok | (inside_grid & hole_ok)) & near & inside
+    return refined, (ok | (pinned & pinned_ok)) & near & inside, probe_quality(meas, params)
 
 
 def _extrapolate(grid: dict[tuple[int, int], np.ndarray], labels: list[tuple[int, int]],
@@ -246,7 +249,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         if not keys:
             break
         n_holes = groups[0][0]
-        refined, good = _verify(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
+        refined, good, _quality = verify_predictions(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
                                 np.arange(len(keys)) < n_holes, accepted)
         start = 0
         for end, labels, outward in groups:

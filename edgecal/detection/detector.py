@@ -12,7 +12,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -24,9 +23,8 @@ from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, probe_candidates,
-                                     ring_prefilter)
-from edgecal.detection.subpixel import refine_corners
+from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, ring_prefilter
+from edgecal.detection.subpixel import nearest_spacing, refine_corners
 from edgecal.detection.types import Detection, DetectionDebug
 from edgecal.images import as_grey
 from edgecal.targets import Board, Target
@@ -75,18 +73,6 @@ def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.nd
                             max(16, p.probe_angles // 2))
         accepted[todo[ok]] = True
     return pts[accepted]
-
-
-def _nearest_spacing(pts: np.ndarray) -> np.ndarray:
-    """Distance from each point to its nearest other point: the local square size on a board.
-
-    On a steeply slanted board the nearest corner can be a diagonal neighbour, which is why this is taken
-    from the points themselves and not from grid labels: windows sized by it never hold two corners.
-    """
-    if len(pts) < 2:
-        return np.full(len(pts), 20.0)
-    d, _ = cKDTree(pts).query(pts, k=2)
-    return np.clip(d[:, 1], 4.0, 300.0)
 
 
 def _dedupe(pts: np.ndarray, order: np.ndarray, radius: float = 1.0) -> np.ndarray:
@@ -183,7 +169,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
         if len(grid) < p.min_grid_corners:
             continue
         xy = 2.0 * np.array(list(grid.values()))
-        spacing = _nearest_spacing(xy)
+        spacing = nearest_spacing(xy)
         if spacing.min() < 2.0 * MIN_HALF_SPACING_PX:
             continue  # too small at half resolution: leave it to the full-resolution search
         xy = refine_corners(level.smooth, xy, spacing)
@@ -204,7 +190,7 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
     stay regular after refinement: the caller then works at full resolution.
     """
     for det in half.detections:
-        spacing = 2.0 * _nearest_spacing(det.corners)
+        spacing = 2.0 * nearest_spacing(det.corners)
         if spacing.min() < 2.0 * MIN_HALF_SPACING_PX:
             return None
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
@@ -226,18 +212,17 @@ def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[
         return debug, []
 
     # Sub-pixel with a window from the local square size, then the probe again with its radius adapted.
-    spacing = _nearest_spacing(pts)
+    spacing = nearest_spacing(pts)
     pts = refine_corners(smooth, pts, spacing)
     pts = pts[_dedupe(pts, np.arange(len(pts)))]
-    spacing = _nearest_spacing(pts)
+    spacing = nearest_spacing(pts)
     radii = np.clip(p.probe_radius_per_spacing * spacing, p.probe_radius_min_px, p.probe_radius_max_px)
     ok, dirs, meas = _probe(smooth, gx, gy, pts, radii, p)
     pts, dirs, meas, spacing = pts[ok], dirs[ok], meas[ok], spacing[ok]
     debug = DetectionDebug(cands, pts, dirs, spacing)
     if len(pts) < 4:
         return debug, []
-    quality = (np.clip(1.0 - meas[:, M_ANGLE_ERR] / math.radians(p.angle_diff_max_deg), 0.0, 1.0)
-               * np.clip(meas[:, M_CONTRAST] / (4.0 * p.min_contrast), 0.0, 1.0))
+    quality = probe_quality(meas, p)
     labels, _nbr = group_grids(pts, dirs, spacing, quality, p.line_distance_px, p.reference_spacing_px,
                                p.cross_ratio_tolerance)
     grids = []
@@ -283,7 +268,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
             debug.notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
         # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
-        xy = refine_corners(smooth, xy, _nearest_spacing(xy))
+        xy = refine_corners(smooth, xy, nearest_spacing(xy))
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             debug.notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
@@ -295,11 +280,10 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
 
 def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
-    spacing = _nearest_spacing(xy)
+    spacing = nearest_spacing(xy)
     radii = np.clip(p.probe_radius_per_spacing * spacing, p.probe_radius_min_px, p.probe_radius_max_px)
     _ok, _dirs, meas = _probe(level.smooth, level.gx, level.gy, xy, radii, p, max(16, p.probe_angles // 2))
-    return (np.clip(1.0 - meas[:, M_ANGLE_ERR] / math.radians(p.angle_diff_max_deg), 0.0, 1.0)
-            * np.clip(meas[:, M_CONTRAST] / (4.0 * p.min_contrast), 0.0, 1.0))
+    return probe_quality(meas, p)
 
 
 def _note_near_miss(debug: DetectionDebug, span: np.ndarray, full: bool, n: int, target: Target) -> None:

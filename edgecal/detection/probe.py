@@ -16,8 +16,13 @@ from __future__ import annotations
 
 import math
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numba import njit
+
+if TYPE_CHECKING:
+    from edgecal.detection.params import DetectorParams
 
 EDGE_MAGNITUDE = 0  # the paper's Eq. (1): |g|
 EDGE_ACROSS_RAY = 1  # edgecal's default: |g . n|, n normal to the ray
@@ -341,3 +346,11 @@ def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_con
                 keep[i] = True
                 break
     return keep
+
+
+def probe_quality(measures: np.ndarray, params: "DetectorParams") -> np.ndarray:
+    """Per point in [0, 1]: how cleanly the probe saw a chessboard corner (angle error x contrast, each
+    scaled to its threshold in ``params``); 1 is a clean, contrasty saddle."""
+    angle = np.clip(1.0 - measures[:, M_ANGLE_ERR] / math.radians(params.angle_diff_max_deg), 0.0, 1.0)
+    contrast = np.clip(measures[:, M_CONTRAST] / (4.0 * params.min_contrast), 0.0, 1.0)
+    return angle * contrast

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 _CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.001)
 
@@ -43,3 +44,15 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
         good = moved < (max_move_px if max_move_px is not None else max(1.5, 0.5 * hw))
         out[sel[good]] = block[good]
     return out.reshape(-1, 2).astype(np.float64)
+
+
+def nearest_spacing(pts: np.ndarray) -> np.ndarray:
+    """Distance from each point to its nearest other point: the local square size on a board.
+
+    On a steeply slanted board the nearest corner can be a diagonal neighbour, which is why this is taken
+    from the points themselves and not from grid labels: windows sized by it never hold two corners.
+    """
+    if len(pts) < 2:
+        return np.full(len(pts), 20.0)
+    d, _ = cKDTree(pts).query(pts, k=2)
+    return np.clip(d[:, 1], 4.0, 300.0)

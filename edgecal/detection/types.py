@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from edgecal.targets import Board
+
 
 @dataclass
 class Detection:
@@ -51,3 +53,15 @@ class DetectionDebug:
     spacing: np.ndarray
     detections: list[Detection] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class CornerPrediction:
+    """Where the corners of one board are expected in an image (edgecal.detection.tracking verifies them).
+
+    ids: (N, 2) int64 (col, row) on ``board``; xy: (N, 2) float64 pixels, OpenCV convention.
+    """
+
+    board: Board
+    ids: np.ndarray
+    xy: np.ndarray

@@ -1,0 +1,105 @@
+"""Detection seeded by a prediction: verify the corners of known boards where they are expected.
+
+In a stream the boards move little between frames, and where each corner should be is known from the
+last pose (edgecal.pose.predict). Searching the whole image again is then wasted work: this refines each
+predicted corner to sub-pixel, lets the probe confirm a chessboard corner there, and keeps a board only
+when enough of its corners are confirmed and its squares have the colours its ids say. The checks are
+the detector's own (verify_predictions, as for the holes of a grid); what is skipped is the search.
+
+Why a wrong prediction cannot pass as a board: a corner is kept only if the refinement stays within a
+quarter of a square of its prediction, so a whole board would have to be predicted about a square off to
+lock onto the neighbouring corners, and a shift by one square along a row or column inverts the colour of
+every square, which the colour check rejects.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
+from edgecal.detection.completion import verify_predictions
+from edgecal.detection.params import DetectorParams
+from edgecal.detection.subpixel import nearest_spacing, subpixel_window
+from edgecal.detection.types import CornerPrediction, Detection
+from edgecal.images import as_grey
+
+DEFAULT_PARAMS = DetectorParams()
+# Share of a board's predicted corners that must be confirmed for the board to be kept.
+MIN_CONFIRMED_FRACTION = 0.5
+
+
+def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, min_contrast: float) -> bool:
+    """Whether the squares framed by confirmed corners have the colours their ids imply.
+
+    The square whose lowest corner is (col, row) is black when col + row is even (docs/conventions.md).
+    Needs at least one square of each colour with all four corners confirmed; the dark ones must be
+    darker than the light ones by ``min_contrast`` on average and each square on its own side of the
+    midpoint between the two means.
+    """
+    at = {(int(c), int(r)): p for (c, r), p in zip(ids, xy)}
+    dark, light = [], []
+    h, w = smooth.shape
+    for (c, r), p in at.items():
+        q = (at.get((c + 1, r)), at.get((c, r + 1)), at.get((c + 1, r + 1)))
+        if any(v is None for v in q):
+            continue
+        x, y = 0.25 * (p + q[0] + q[1] + q[2])
+        xi, yi = int(round(x)), int(round(y))
+        if not (1 <= xi < w - 1 and 1 <= yi < h - 1):
+            continue
+        value = float(smooth[yi - 1:yi + 2, xi - 1:xi + 2].mean())
+        (dark if (c + r) % 2 == 0 else light).append(value)
+    if not dark or not light:
+        return False
+    mid = 0.5 * (np.mean(dark) + np.mean(light))
+    return bool(np.mean(light) - np.mean(dark) >= min_contrast and max(dark) < mid < min(light))
+
+
+def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
+                 params: DetectorParams | None = None) -> list[Detection]:
+    """The predicted boards that are really there, corners refined to sub-pixel (OpenCV pixel convention).
+
+    Only the image region around the predictions is processed. A board is kept when at least
+    MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed and its squares'
+    colours match its ids; its Detection holds the confirmed corners (``complete`` when they are all of
+    the board). Boards not confirmed are left out: the caller decides whether to search the image.
+    """
+    p = params or DEFAULT_PARAMS
+    predictions = [pr for pr in predictions if len(pr.ids) >= 4]
+    if not predictions:
+        return []
+    grey = as_grey(image)
+    h, w = grey.shape
+    spacing = [nearest_spacing(pr.xy) for pr in predictions]
+    all_xy = np.concatenate([pr.xy for pr in predictions])
+    all_spacing = np.concatenate(spacing)
+    reach = max(float(subpixel_window(all_spacing).max()),
+                float(np.clip(p.probe_radius_per_spacing * all_spacing, p.probe_radius_min_px,
+                              p.probe_radius_max_px).max()))
+    margin = int(np.ceil(reach)) + 4
+    x0, y0 = (max(0, int(np.floor(v)) - margin) for v in all_xy.min(axis=0))
+    x1 = min(w, int(np.ceil(all_xy[:, 0].max())) + margin + 1)
+    y1 = min(h, int(np.ceil(all_xy[:, 1].max())) + margin + 1)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return []
+    crop = grey[y0:y1, x0:x1]
+    smooth = smooth_image(crop, smoothing_sigma(estimate_noise_sigma(crop)))
+    gx, gy = gradients(smooth)
+    offset = np.array([x0, y0], dtype=np.float64)
+
+    found = []
+    for pr, sp in zip(predictions, spacing):
+        local = np.ascontiguousarray(pr.xy - offset)
+        refined, good, quality = verify_predictions(smooth, gx, gy, local, sp, p, np.ones(len(local), bool))
+        if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(local)):
+            continue
+        ids, xy = pr.ids[good], refined[good]
+        if not square_colours_match(ids, xy, smooth, p.min_contrast):
+            continue
+        order = np.lexsort((ids[:, 0], ids[:, 1]))
+        board = pr.board
+        found.append(Detection(board.name, xy[order] + offset, ids[order], quality[good][order],
+                               (board.cols, board.rows), complete=len(ids) == board.n_corners))
+    return found

@@ -1,0 +1,96 @@
+"""Where the target's corners will be in the next frame: the pose extrapolated in time, then projected.
+
+The live loop tracks the robot: instead of searching a whole image for boards, it projects every board
+of the target through the pose it expects and lets the detector verify the corners there
+(edgecal.detection.tracking). These are the geometric halves of that: a constant-velocity extrapolation
+of T_rig_robot and the projection of the target into one camera of the rig.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from edgecal.detection.types import CornerPrediction
+from edgecal.pose.types import StereoCameras
+from edgecal.targets import Target
+
+# A board seen closer to edge-on than this (cosine between its normal and the line of sight) is not
+# predicted: its squares are slivers that neither the probe nor cornerSubPix can localise.
+MIN_FACING_COS = 0.2
+# Farthest the extrapolation reaches ahead, in units of the last inter-frame interval: after a long gap
+# (dropped frames, a stalled camera) constant velocity is a guess, not a prediction.
+MAX_EXTRAPOLATION = 3.0
+
+
+def _rotation_vector(R: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].ravel()
+
+
+def extrapolate_pose(R_prev: np.ndarray, t_prev: np.ndarray, stamp_prev_ns: int, R_last: np.ndarray,
+                     t_last: np.ndarray, stamp_last_ns: int, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
+    """T_rig_robot at ``stamp_ns`` from the two latest poses, moving at constant (angular) velocity.
+
+    The rotation step is taken about the rig's axes (R_last = dR R_prev) and scaled by the time ratio,
+    at most MAX_EXTRAPOLATION intervals ahead; stamps that do not advance give the last pose.
+    """
+    R_last = np.asarray(R_last, dtype=np.float64)
+    t_last = np.asarray(t_last, dtype=np.float64).ravel()
+    interval = stamp_last_ns - stamp_prev_ns
+    if interval <= 0 or stamp_ns <= stamp_last_ns:
+        return R_last.copy(), t_last.copy()
+    ratio = min((stamp_ns - stamp_last_ns) / interval, MAX_EXTRAPOLATION)
+    step = _rotation_vector(R_last @ np.asarray(R_prev, dtype=np.float64).T)
+    dR = cv2.Rodrigues(ratio * step)[0]
+    return dR @ R_last, t_last + ratio * (t_last - np.asarray(t_prev, dtype=np.float64).ravel())
+
+
+def camera_from_rig(cams: StereoCameras, side: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T_cam_robot for the ``side`` ("left" or "right") camera, given T_rig_robot (the rig frame is the left
+    camera's)."""
+    if side == "left":
+        return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).ravel()
+    Rrl = np.asarray(cams.R, dtype=np.float64)
+    return Rrl @ R, Rrl @ np.asarray(t, dtype=np.float64).ravel() + np.asarray(cams.T, dtype=np.float64).ravel()
+
+
+def predict_corners(R: np.ndarray, t_m: np.ndarray, cams: StereoCameras, side: str, target: Target,
+                    margin_px: float = 8.0) -> list[CornerPrediction]:
+    """The corners of every board of ``target`` that the ``side`` camera should see under T_rig_robot = (R, t).
+
+    A board must face the camera (its printed side: the board normal x_axis × y_axis points away from
+    the camera, see configs/targets/) at more than MIN_FACING_COS; of its corners, those in front of the
+    camera and at least ``margin_px`` inside the image are kept. Occlusion is not modelled: the detector's
+    verification drops corners that are not there.
+    """
+    K = np.asarray(cams.camera_matrix_left if side == "left" else cams.camera_matrix_right, dtype=np.float64)
+    dist = np.asarray(cams.dist_coeffs_left if side == "left" else cams.dist_coeffs_right, dtype=np.float64)
+    R_c, t_c = camera_from_rig(cams, side, R, t_m)
+    rvec = cv2.Rodrigues(R_c)[0]
+    w, h = cams.image_size
+    out = []
+    for board in target.boards:
+        ids = board.ids()
+        X = board.target_points_mm(ids) / 1000.0
+        X_cam = X @ R_c.T + t_c
+        normal_cam = R_c @ board.normal
+        centre = X_cam.mean(axis=0)
+        if normal_cam @ centre < MIN_FACING_COS * np.linalg.norm(centre):
+            continue
+        # cv2.projectPoints' distortion polynomial folds points far outside the field of view back into
+        # the image: only points well in front of the camera and inside its undistorted view are projected.
+        front = X_cam[:, 2] > 1e-3
+        if w and h:
+            z = np.where(front, X_cam[:, 2], 1.0)
+            pinhole = (X_cam[:, :2] / z[:, None]) * np.diag(K)[:2] + K[:2, 2]
+            front &= ((pinhole[:, 0] > -0.5 * w) & (pinhole[:, 0] < 1.5 * w)
+                      & (pinhole[:, 1] > -0.5 * h) & (pinhole[:, 1] < 1.5 * h))
+        if not front.any():
+            continue
+        px, _ = cv2.projectPoints(X[front], rvec, t_c, K, dist)
+        px = px.reshape(-1, 2)
+        inside = ((px[:, 0] >= margin_px) & (px[:, 0] <= w - 1 - margin_px)
+                  & (px[:, 1] >= margin_px) & (px[:, 1] <= h - 1 - margin_px)) if w and h else np.ones(len(px), bool)
+        if inside.any():
+            out.append(CornerPrediction(board, ids[front][inside], px[inside]))
+    return out
