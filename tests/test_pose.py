@@ -195,3 +195,22 @@ def test_a_misread_board_is_rejected_and_named() -> None:
     assert pose.valid, pose.reason
     assert pose.rejected == (f"{bad.board} (right)",)
     assert np.linalg.norm(pose.t_m - t) < 1e-3
+
+
+def test_single_corner_outliers_are_left_out_and_counted() -> None:
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t, 0.05, np.random.default_rng(5))
+    clean = estimate_pose(left, right, target, cams)
+    assert clean.valid and clean.outliers == 0
+    # Two corners locked onto the wrong structure, 3 and 5 px off: a board-level RMS check would pass them.
+    left[0].corners[3] += [3.0, 0.0]
+    right[0].corners[7] += [0.0, -5.0]
+    pose = estimate_pose(left, right, target, cams)
+    assert pose.valid, pose.reason
+    assert pose.outliers == 2 and pose.n_corners == clean.n_corners - 2
+    assert np.linalg.norm(pose.t_m - t) < 0.5e-3
+    assert pose.rms_px < 0.1
+    # Without the rejection (a floor above the outliers) the same corners move the pose measurably.
+    kept = estimate_pose(left, right, target, cams, PoseSettings(outlier_min_px=10.0))
+    assert kept.outliers == 0 and kept.rms_px > 2 * pose.rms_px

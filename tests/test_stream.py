@@ -96,6 +96,8 @@ def test_loop_publishes_poses_matching_truth(sequence: tuple[Path, dict], tmp_pa
         assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
     status = sub.of("status")[-1]
     assert status["frames"] >= N_FRAMES and status["corrupt_frames"] == 0
+    # Every pass of the looping replay is searched at its first frame and tracked after it.
+    assert 0 < status["tracked_frames"] < status["frames"]
     assert set(status["latency_ms"]) == {"median", "p99"}
 
 

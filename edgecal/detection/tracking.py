@@ -10,12 +10,18 @@ Why a wrong prediction cannot pass as a board: a corner is kept only if the refi
 quarter of a square of its prediction, so a whole board would have to be predicted about a square off to
 lock onto the neighbouring corners, and a shift by one square along a row or column inverts the colour of
 every square, which the colour check rejects.
+
+Why a single corner cannot slide off: between the predicted and the found corners of one board the
+motion is smooth - over a board and a frame's worth of prediction error, an affine map to a small
+fraction of a pixel. A corner that the refinement slid along an edge (a steeply slanted board's thin
+squares leave cornerSubPix ill-conditioned along them) breaks that map and is dropped.
 """
 
 from __future__ import annotations
 
 from typing import Sequence
 
+import cv2
 import numpy as np
 
 from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
@@ -28,6 +34,24 @@ from edgecal.images import as_grey
 DEFAULT_PARAMS = DetectorParams()
 # Share of a board's predicted corners that must be confirmed for the board to be kept.
 MIN_CONFIRMED_FRACTION = 0.5
+# Largest distance (px) of a confirmed corner from the affine map that takes the board's predicted corners
+# to the confirmed ones; the detector's corners are good to ~0.1 px, a slid corner is off by pixels.
+MAX_MOTION_RESIDUAL_PX = 0.5
+
+
+def motion_inliers(predicted: np.ndarray, found: np.ndarray, max_residual_px: float = MAX_MOTION_RESIDUAL_PX
+                   ) -> np.ndarray:
+    """Which found corners (M, 2) follow the affine map from their predictions (M, 2) that most of them
+    follow (RANSAC, then least squares on the inliers); all False when fewer than 4 are given."""
+    if len(found) < 4:
+        return np.zeros(len(found), dtype=bool)
+    M, inliers = cv2.estimateAffine2D(predicted.astype(np.float32), found.astype(np.float32), method=cv2.RANSAC,
+                                      ransacReprojThreshold=max_residual_px, maxIters=200, confidence=0.999,
+                                      refineIters=10)
+    if M is None:
+        return np.zeros(len(found), dtype=bool)
+    mapped = predicted @ M[:, :2].T + M[:, 2]
+    return np.linalg.norm(mapped - found, axis=1) <= max_residual_px
 
 
 def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, min_contrast: float) -> bool:
@@ -61,9 +85,10 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
                  params: DetectorParams | None = None) -> list[Detection]:
     """The predicted boards that are really there, corners refined to sub-pixel (OpenCV pixel convention).
 
-    Only the image region around the predictions is processed. A board is kept when at least
-    MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed and its squares'
-    colours match its ids; its Detection holds the confirmed corners (``complete`` when they are all of
+    Only the image region around the predictions is processed. A corner is confirmed when the probe sees a
+    chessboard corner near its prediction and it follows the board's motion (motion_inliers). A board is
+    kept when at least MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed
+    and its squares' colours match its ids; its Detection holds the confirmed corners (``complete`` when they are all of
     the board). Boards not confirmed are left out: the caller decides whether to search the image.
     """
     p = params or DEFAULT_PARAMS
@@ -93,6 +118,8 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     for pr, sp in zip(predictions, spacing):
         local = np.ascontiguousarray(pr.xy - offset)
         refined, good, quality = verify_predictions(smooth, gx, gy, local, sp, p, np.ones(len(local), bool))
+        idx = np.nonzero(good)[0]
+        good[idx[~motion_inliers(local[idx], refined[idx])]] = False
         if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(local)):
             continue
         ids, xy = pr.ids[good], refined[good]

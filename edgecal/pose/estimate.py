@@ -111,23 +111,60 @@ def check_quality(pose: Pose, settings: PoseSettings) -> Pose:
     return pose
 
 
+# Rayleigh median: the median length of a 2-D residual with sigma per axis is sigma * sqrt(2 ln 2).
+_RAYLEIGH_MEDIAN = 1.1774
+# At most this share of the corners is rejected one by one; beyond it the fit itself is wrong (a misread
+# board), which the board-level rejection of estimate_pose handles.
+MAX_OUTLIER_SHARE = 0.25
+
+
+def corner_outliers(residuals: np.ndarray, sigmas: float, min_px: float) -> np.ndarray:
+    """Which corners (residuals stacked as x, y per corner) lie beyond ``sigmas`` robust sigmas and ``min_px``.
+
+    The robust sigma comes from the median residual length, so a few gross outliers do not inflate it.
+    """
+    norms = np.hypot(residuals[0::2], residuals[1::2])
+    if norms.size == 0:
+        return np.zeros(0, dtype=bool)
+    threshold = max(min_px, sigmas * float(np.median(norms)) / _RAYLEIGH_MEDIAN)
+    return norms > threshold
+
+
 def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings: PoseSettings) -> Pose:
-    """One fit over the corner tables of the left and right images (see estimate_pose)."""
-    counts = dict(n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)))
+    """One fit over the corner tables of the left and right images (see estimate_pose).
+
+    After the refinement, single corners that reproject far worse than the rest (corner_outliers) are
+    left out and the pose is refined again from where it is, a few rounds at most.
+    """
     if not tl and not tr:
-        return Pose.invalid("no board detected", **counts)
+        return Pose.invalid("no board detected", n_left=0, n_right=0, n_both=0)
     vl, vr = _views(cams, target, tl, tr)
     start = initial_pose(cams, target, tl, tr, vl, vr, settings)
     if start is None:
-        return Pose.invalid(f"too few corners for a pose ({len(tl)} left, {len(tr)} right)", **counts)
-    R0, t0, mode = start
-    # Mono: the other camera's few corners (fewer than 4 shared) still help, but only if they agree.
-    views = [v for v in (vl, vr) if v.n > 0]
-    R, t, res, J = refine_pose(R0, t0, views)
+        return Pose.invalid(f"too few corners for a pose ({len(tl)} left, {len(tr)} right)", n_left=len(tl),
+                            n_right=len(tr), n_both=len(set(tl) & set(tr)))
+    R, t, mode = start
+    total = len(tl) + len(tr)
+    outliers = 0
+    for _round in range(4):
+        # Mono: the other camera's few corners (fewer than 4 shared) still help, but only if they agree.
+        views = [v for v in (vl, vr) if v.n > 0]
+        R, t, res, J = refine_pose(R, t, views)
+        bad = corner_outliers(res, settings.outlier_sigmas, settings.outlier_min_px)
+        if _round == 3 or not bad.any() or outliers + int(bad.sum()) > MAX_OUTLIER_SHARE * total:
+            break
+        keys = sorted(tl) + sorted(tr)          # the residuals' order: left view, then right view
+        drop_left = {keys[i] for i in np.nonzero(bad[:len(tl)])[0]}
+        drop_right = {keys[len(tl) + i] for i in np.nonzero(bad[len(tl):])[0]}
+        tl = {k: v for k, v in tl.items() if k not in drop_left}
+        tr = {k: v for k, v in tr.items() if k not in drop_right}
+        outliers += int(bad.sum())
+        vl, vr = _views(cams, target, tl, tr)
     rms = float(np.sqrt(np.mean(res ** 2))) if len(res) else float("nan")
     cov = pose_covariance(J, res, settings.covariance_scale, settings.corner_noise_px)
     boards = tuple(sorted({k[0] for k in tl} | {k[0] for k in tr}))
-    pose = Pose(R, t, cov, mode, True, "", rms, boards=boards, **counts)
+    pose = Pose(R, t, cov, mode, True, "", rms, n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)),
+                boards=boards, outliers=outliers)
     return check_quality(pose, settings)
 
 

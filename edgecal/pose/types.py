@@ -50,11 +50,17 @@ class PoseSettings:
                       "max"      by the larger of the two (default: a clean render's tiny residual must
                                  not make the pose look more certain than the detector really is).
     corner_noise_px:  1-sigma corner localisation noise of the detector, in pixels.
+    outlier_sigmas,   a corner whose reprojection residual exceeds both ``outlier_sigmas`` robust sigmas
+    outlier_min_px:   (from the median residual) and ``outlier_min_px`` is left out and the pose refitted:
+                      one corner locked onto the wrong structure must not move the pose by millimetres.
+                      The floor keeps a clean frame's tiny spread from rejecting good corners.
     """
 
     triangulation: str = "linear"
     covariance_scale: str = "max"
     corner_noise_px: float = 0.1
+    outlier_sigmas: float = 4.0
+    outlier_min_px: float = 0.5
     bounds: QualityBounds = field(default_factory=QualityBounds)
 
 
@@ -81,6 +87,7 @@ class Pose:
     n_both: int = 0
     boards: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()        # "board (camera)" taken out of the fit as misfits
+    outliers: int = 0                     # single corner observations left out of the fit
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:

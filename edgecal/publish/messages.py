@@ -52,6 +52,7 @@ def pose_message(pose: Pose, seq: int, stamp_ns: int, publish_ns: int) -> dict[s
             "corners_both": int(pose.n_both),
             "boards": list(pose.boards),
             "rejected": list(pose.rejected),
+            "outliers": int(pose.outliers),
             "position_std_mm": _num(pose.position_std_mm, 4) if computed else None,
             "rotation_std_deg": _num(pose.rotation_std_deg, 5) if computed else None,
         },

@@ -7,8 +7,10 @@
     rig: out/demo/rig.yaml       # stereo calibration (cv2.FileStorage, T in metres)
     target: targets/robot-3boards.yaml
     detector: null               # optional detector thresholds file (configs/detector.yaml format)
-    pose:    {triangulation: linear, covariance_scale: max, corner_noise_px: 0.1,
+    pose:    {triangulation: linear, covariance_scale: max, corner_noise_px: 0.1, outlier_sigmas: 4.0,
+              outlier_min_px: 0.5,
               min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
+    tracking: {enabled: true, max_gap_s: 0.1, min_confirmed_fraction: 0.6}
     publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4}
     loop:    {latest_frame_wins: true, status_period_s: 1.0, camera_lost_after_s: 2.0,
               reconnect_min_s: 0.5, reconnect_max_s: 10.0, stop_at_end: true}
@@ -30,6 +32,7 @@ from edgecal.drivers.spec import SourceSpec, spec_from_config
 from edgecal.errors import ConfigError, EdgecalError
 from edgecal.pose.types import PoseSettings, QualityBounds, StereoCameras
 from edgecal.publish.publisher import DEFAULT_ENDPOINT, check_endpoint
+from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
 
 
@@ -67,6 +70,7 @@ class LiveConfig:
     publish: PublishSettings
     loop: LoopSettings
     rig_path: str
+    tracking: TrackingSettings = TrackingSettings()
 
 
 def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
@@ -82,8 +86,8 @@ def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
 
 
 def _read_pose(r: ConfigReader) -> PoseSettings:
-    r.reject_unknown(("triangulation", "covariance_scale", "corner_noise_px", "min_corners", "max_rms_px",
-                      "max_position_std_mm", "max_rotation_std_deg"))
+    r.reject_unknown(("triangulation", "covariance_scale", "corner_noise_px", "outlier_sigmas", "outlier_min_px",
+                      "min_corners", "max_rms_px", "max_position_std_mm", "max_rotation_std_deg"))
     d, b = PoseSettings(), QualityBounds()
     bounds = QualityBounds(
         min_corners=r.integer("min_corners", b.min_corners, minimum=3),
@@ -94,6 +98,8 @@ def _read_pose(r: ConfigReader) -> PoseSettings:
         triangulation=r.string("triangulation", d.triangulation, choices=("optimal", "linear")),
         covariance_scale=r.string("covariance_scale", d.covariance_scale, choices=("max", "residual", "noise")),
         corner_noise_px=r.number("corner_noise_px", d.corner_noise_px, positive=True),
+        outlier_sigmas=r.number("outlier_sigmas", d.outlier_sigmas, minimum=2.0),
+        outlier_min_px=r.number("outlier_min_px", d.outlier_min_px, positive=True),
         bounds=bounds)
 
 
@@ -142,7 +148,17 @@ def load_stereo_cameras(path: Path, field: str, source: str) -> StereoCameras:
                          tuple(rig.image_size))
 
 
-LIVE_FIELDS = ("source", "rig", "target", "detector", "pose", "publish", "loop")
+def _read_tracking(r: ConfigReader) -> TrackingSettings:
+    r.reject_unknown(("enabled", "max_gap_s", "min_confirmed_fraction"))
+    d = TrackingSettings()
+    return TrackingSettings(
+        enabled=r.boolean("enabled", d.enabled),
+        max_gap_s=r.number("max_gap_s", d.max_gap_s, positive=True, maximum=10.0),
+        min_confirmed_fraction=r.number("min_confirmed_fraction", d.min_confirmed_fraction, positive=True,
+                                        maximum=1.0))
+
+
+LIVE_FIELDS = ("source", "rig", "target", "detector", "pose", "tracking", "publish", "loop")
 
 
 def load_live_config(path: str | Path) -> LiveConfig:
@@ -170,4 +186,5 @@ def load_live_config(path: str | Path) -> LiveConfig:
     pose = _read_pose(r.section("pose", {}))
     publish = _read_publish(r.section("publish", {}))
     loop = _read_loop(r.section("loop", {}))
-    return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path))
+    tracking = _read_tracking(r.section("tracking", {}))
+    return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path), tracking)

@@ -20,6 +20,7 @@ import numpy as np
 import edgecal
 from edgecal.drivers.base import Source, StereoFrame, StereoSource
 from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
+from edgecal.detection.tracking import track_boards
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, EdgecalError, InputError
 from edgecal.pose import Pose, estimate_pose
@@ -27,6 +28,7 @@ from edgecal.publish import PosePublisher, pose_message, status_message
 from edgecal.stream.config import LiveConfig, load_live_config
 from edgecal.stream.notify import SystemdNotifier
 from edgecal.stream.stats import LoopStats
+from edgecal.stream.tracker import BoardTracker, confirmed_fraction
 
 log = logging.getLogger("edgecal.stream")
 
@@ -75,6 +77,7 @@ class LiveLoop:
         self.source_factory = source_factory
         self.notifier = notifier or SystemdNotifier()
         self.stats = LoopStats(time.monotonic_ns())
+        self.tracker = BoardTracker(config.target, config.cameras, config.tracking)
         self.state = "starting"
         # Plain flags, not threading.Event: a signal handler that takes a lock the interrupted loop
         # already holds would deadlock.
@@ -201,6 +204,7 @@ class LiveLoop:
                 return
             self._source = source
         self._last_frame_ns = time.monotonic_ns()
+        self.tracker.reset()
         if self.state == "camera-lost":
             log.info("camera %s reopened", self.config.source.uri)
             self.stats.reconnects += 1
@@ -304,11 +308,55 @@ class LiveLoop:
         except InputError as exc:            # e.g. an array the detector cannot read as an image
             return [], str(exc)
 
-    def _process(self, frame: StereoFrame) -> None:
-        """Detect, estimate and publish the pose of one stereo frame.
+    def _track(self, image: object, predictions: list) -> list:
+        """The predicted boards confirmed in one image (tracking; see edgecal.stream.tracker)."""
+        return track_boards(image, predictions, self.config.detector) if predictions else []
+
+    def _tracked_pose(self, frame: StereoFrame) -> Pose | None:
+        """The pose from verifying the tracker's predicted corners in both images, or None when there is
+        no prediction or the result is in doubt (then the frame is searched in full)."""
+        predicted = self.tracker.predict(frame.stamp_ns)
+        if predicted is None:
+            return None
+        assert self._pool is not None
+        right = self._pool.submit(self._track, frame.right.image, predicted[1])
+        left_det = self._track(frame.left.image, predicted[0])
+        right_det = right.result()
+        if confirmed_fraction(predicted[0] + predicted[1], left_det + right_det) \
+                < self.config.tracking.min_confirmed_fraction:
+            return None
+        pose = estimate_pose(left_det, right_det, self.config.target, self.config.cameras, self.config.pose)
+        # A misfit board or an invalid pose may be a tracking failure: the full search decides.
+        return pose if pose.valid and not pose.rejected else None
+
+    def _searched_pose(self, frame: StereoFrame, bad_left: str | None, bad_right: str | None) -> tuple[Pose, int]:
+        """The pose from searching both images in full, and how many images showed no board.
 
         A corrupt image (unreadable, wrong size or type) is counted; the other camera alone still gives a
         (mono) pose. Both corrupt: an invalid pose naming the problem.
+        """
+        cfg = self.config
+        assert self._pool is not None
+        right = self._pool.submit(self._detect, frame.right.image, bad_right)
+        left_det, bad_left = self._detect(frame.left.image, bad_left)
+        right_det, bad_right = right.result()
+        problems = [p for p in (bad_left, bad_right) if p]
+        if problems:
+            self.stats.corrupt_frames += 1
+            self._rate_limited_error(f"corrupt frame {frame.left.seq}: {'; '.join(problems)}")
+        if len(problems) == 2:
+            return Pose.invalid(f"corrupt frame: {'; '.join(problems)}"), 0
+        failed_images = int(not left_det and not bad_left) + int(not right_det and not bad_right)
+        pose = estimate_pose(left_det, right_det, cfg.target, cfg.cameras, cfg.pose)
+        if problems and not pose.valid:
+            pose.reason = f"{pose.reason}; corrupt frame: {problems[0]}"
+        return pose, failed_images
+
+    def _process(self, frame: StereoFrame) -> None:
+        """Detect, estimate and publish the pose of one stereo frame.
+
+        With a recent pose the predicted corners are verified (tracking); without one, or when the tracked
+        result is in doubt, both images are searched in full.
         """
         cfg = self.config
         size = cfg.cameras.image_size
@@ -316,25 +364,17 @@ class LiveLoop:
         bad_right = check_image(frame.right.image, size, "right")
         failed_images = 0
         try:
-            assert self._pool is not None
-            right = self._pool.submit(self._detect, frame.right.image, bad_right)
-            left_det, bad_left = self._detect(frame.left.image, bad_left)
-            right_det, bad_right = right.result()
-            problems = [p for p in (bad_left, bad_right) if p]
-            if problems:
-                self.stats.corrupt_frames += 1
-                self._rate_limited_error(f"corrupt frame {frame.left.seq}: {'; '.join(problems)}")
-            if len(problems) == 2:
-                pose = Pose.invalid(f"corrupt frame: {'; '.join(problems)}")
+            pose = self._tracked_pose(frame) if bad_left is None and bad_right is None else None
+            if pose is not None:
+                self.stats.tracked_frames += 1
             else:
-                failed_images = int(not left_det and not bad_left) + int(not right_det and not bad_right)
-                pose = estimate_pose(left_det, right_det, cfg.target, cfg.cameras, cfg.pose)
-                if problems and not pose.valid:
-                    pose.reason = f"{pose.reason}; corrupt frame: {problems[0]}"
+                pose, failed_images = self._searched_pose(frame, bad_left, bad_right)
+            self.tracker.update(pose, frame.stamp_ns)
         except Exception as exc:     # a bug must not kill a daemon that runs for weeks: log, count, go on
             self.stats.errors += 1
             self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exc!r}", exc_info=True)
             pose = Pose.invalid(f"internal error: {type(exc).__name__}")
+            self.tracker.reset()
         now = time.monotonic_ns()
         capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver == "replay")
         msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now)
@@ -397,6 +437,7 @@ class LiveLoop:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
         self.config = new
+        self.tracker = BoardTracker(new.target, new.cameras, new.tracking)
         self._backoff_s = new.loop.reconnect_min_s
         self._last_message = ""
         log.info("config %s reloaded", new.path)

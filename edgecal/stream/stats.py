@@ -19,6 +19,7 @@ class LoopStats:
         self.poses_valid = 0
         self.poses_invalid = 0
         self.detection_failures = 0     # images (left or right) in which no board was found
+        self.tracked_frames = 0         # frames whose predicted corners were verified (no full search)
         self.corrupt_frames = 0         # frames that could not be used at all (bad image, read error)
         self.errors = 0                 # unexpected exceptions while processing a frame
         self.dropped_frames = 0         # frames the source skipped (latest-frame-wins, device losses)
@@ -58,6 +59,7 @@ class LoopStats:
                            "p99": round(float(np.percentile(lat, 99)), 2) if lat.size else None},
             "frames": self.frames, "poses_valid": self.poses_valid, "poses_invalid": self.poses_invalid,
             "dropped_frames": self.dropped_frames, "detection_failures": self.detection_failures,
+            "tracked_frames": self.tracked_frames,
             "corrupt_frames": self.corrupt_frames, "errors": self.errors, "reconnects": self.reconnects,
             "reload_failures": self.reload_failures,
         }

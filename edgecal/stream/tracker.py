@@ -1,0 +1,92 @@
+"""Board tracking across frames: where the robot's corners should be in the next stereo frame.
+
+The live loop keeps the latest valid poses here and asks, before each frame, for the corners every
+board of the target should show in the left and right images (the pose extrapolated to the frame's
+capture stamp at constant velocity, then projected: edgecal.pose.predict). The detector then only
+verifies those corners (edgecal.detection.tracking.track_boards) instead of searching both images,
+which is what lets the loop keep up with 30 stereo frames a second. Any doubt - no recent pose, a gap
+in the stream, an invalid pose, too few confirmed corners - and the loop searches the images again.
+
+What tracking cannot see by itself is a prediction more than a square off that lands on the
+diagonal neighbours (a shift along a row or a column inverts the square colours and is caught): that
+takes an error of about 1.4 squares (40 mm for 30 mm squares) from constant-velocity extrapolation,
+which is why predictions are made only across short gaps (``max_gap_s``). On a target with boards on
+several faces such a slip also breaks the rigid fit (each board slips along its own face); a single
+flat board has only that short gap against it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from edgecal.detection.types import CornerPrediction, Detection
+from edgecal.pose.predict import extrapolate_pose, predict_corners
+from edgecal.pose.types import Pose, StereoCameras
+from edgecal.targets import Target
+
+
+@dataclass(frozen=True)
+class TrackingSettings:
+    """When the loop may verify predicted corners instead of searching the images (configs/robot.yaml).
+
+    enabled:                 false: every frame is searched in full (the detector alone).
+    max_gap_s:               predictions only from a pose whose frame is at most this much older than
+                             the new one (a longer gap, e.g. a stalled camera, and the motion is unknown).
+    min_confirmed_fraction:  share of the predicted corners (left and right together) the detector must
+                             confirm for the tracked frame to stand; fewer and the frame is searched.
+    """
+
+    enabled: bool = True
+    max_gap_s: float = 0.1
+    min_confirmed_fraction: float = 0.6
+
+
+def confirmed_fraction(predictions: list[CornerPrediction], detections: list[Detection]) -> float:
+    """Share of the predicted corners that the detections confirmed (0 when nothing was predicted)."""
+    n_pred = sum(len(p.ids) for p in predictions)
+    return sum(len(d.ids) for d in detections) / n_pred if n_pred else 0.0
+
+
+class BoardTracker:
+    """The last two valid poses of the stream and the corner predictions made from them."""
+
+    def __init__(self, target: Target, cameras: StereoCameras, settings: TrackingSettings) -> None:
+        self.target = target
+        self.cameras = cameras
+        self.settings = settings
+        self._poses: list[tuple[np.ndarray, np.ndarray, int]] = []   # (R, t_m, stamp_ns), oldest first
+
+    def reset(self) -> None:
+        """Forget the motion (after an invalid pose, a reopened camera or a reload)."""
+        self._poses.clear()
+
+    def predict(self, stamp_ns: int) -> tuple[list[CornerPrediction], list[CornerPrediction]] | None:
+        """The corners expected in the left and right images of the frame captured at ``stamp_ns``, or None
+        when there is no recent pose to predict from (the frame must then be searched)."""
+        if not self.settings.enabled or not self._poses:
+            return None
+        R_last, t_last, stamp_last = self._poses[-1]
+        if not 0 <= stamp_ns - stamp_last <= self.settings.max_gap_s * 1e9:
+            return None
+        if len(self._poses) == 2:
+            R_prev, t_prev, stamp_prev = self._poses[0]
+            R, t = extrapolate_pose(R_prev, t_prev, stamp_prev, R_last, t_last, stamp_last, stamp_ns)
+        else:
+            R, t = R_last, t_last
+        left = predict_corners(R, t, self.cameras, "left", self.target)
+        right = predict_corners(R, t, self.cameras, "right", self.target)
+        if not left and not right:
+            return None
+        return left, right
+
+    def update(self, pose: Pose, stamp_ns: int) -> None:
+        """Take the frame's pose: a valid one becomes the newest of the two kept, an invalid one resets."""
+        if not pose.valid or not np.all(np.isfinite(pose.t_m)):
+            self.reset()
+            return
+        if self._poses and stamp_ns <= self._poses[-1][2]:
+            self.reset()                 # the stream went back in time (a replay that loops)
+        self._poses = self._poses[-1:] + [(np.array(pose.R, dtype=np.float64), np.array(pose.t_m, dtype=np.float64),
+                                           int(stamp_ns))]

@@ -1,0 +1,168 @@
+"""Tracking: pose extrapolation, corner prediction, verification of predicted corners, the tracker's state.
+
+Everything runs on a rendered robot sequence (edgecal.synth) whose true poses and corners are exact.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from edgecal.detection.tracking import track_boards
+from edgecal.detection.types import CornerPrediction
+from edgecal.pose import Pose, estimate_pose
+from edgecal.pose.predict import MAX_EXTRAPOLATION, extrapolate_pose, predict_corners
+from edgecal.stream import LiveLoop, load_live_config
+from edgecal.stream.tracker import BoardTracker, TrackingSettings, confirmed_fraction
+from live_fixtures import free_endpoint, render_robot, write_config
+
+N_FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict, object]:
+    """A rendered robot sequence, its truth and its live config (the renderer's true rig)."""
+    folder = tmp_path_factory.mktemp("robot")
+    truth = render_robot(folder, N_FRAMES)
+    cfg = load_live_config(write_config(folder / "live.yaml", folder, free_endpoint()))
+    return folder, truth, cfg
+
+
+def truth_corners(frame: dict, side: str) -> dict[tuple[str, int, int], np.ndarray]:
+    """(board, col, row) -> true pixel of every corner the renderer saw in one image."""
+    return {(b["name"], int(i[0]), int(i[1])): np.array(c) for b in frame[f"boards_{side}"]
+            for i, c in zip(b["ids"], b["corners"])}
+
+
+def pose_of(frame: dict) -> tuple[np.ndarray, np.ndarray]:
+    return np.array(frame["R_rig_robot"]), np.array(frame["t_rig_robot_m"])
+
+
+def test_extrapolation_is_exact_for_constant_velocity() -> None:
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    R0 = Rotation.from_euler("xyz", [10, -20, 30], degrees=True).as_matrix()
+    t0, v = np.array([0.1, -0.2, 1.0]), np.array([0.3, 0.1, -0.2])          # m, m/s
+    w = 0.9                                                                   # rad/s about ``axis``
+
+    def at(s: float) -> tuple[np.ndarray, np.ndarray]:
+        return Rotation.from_rotvec(w * s * axis).as_matrix() @ R0, t0 + v * s
+
+    ns = 10**9
+    (Ra, ta), (Rb, tb) = at(0.0), at(1 / 30)
+    R, t = extrapolate_pose(Ra, ta, 0, Rb, tb, ns // 30, 3 * ns // 30)
+    R_true, t_true = at(3 / 30)
+    assert np.abs(t - t_true).max() < 1e-9
+    assert np.linalg.norm(Rotation.from_matrix(R @ R_true.T).as_rotvec()) < 1e-9
+    # A long gap is extrapolated no further than MAX_EXTRAPOLATION intervals.
+    _, t_far = extrapolate_pose(Ra, ta, 0, Rb, tb, ns // 30, ns)
+    assert np.allclose(t_far, tb + MAX_EXTRAPOLATION * (tb - ta))
+    # Stamps that do not advance: the last pose as it is.
+    R_same, t_same = extrapolate_pose(Ra, ta, 0, Rb, tb, ns // 30, ns // 30)
+    assert np.allclose(R_same, Rb) and np.allclose(t_same, tb)
+
+
+def test_predicted_corners_match_the_rendered_truth(robot) -> None:
+    _folder, truth, cfg = robot
+    frame = truth["frames"][0]
+    for side in ("left", "right"):
+        preds = predict_corners(*pose_of(frame), cfg.cameras, side, cfg.target)
+        seen = truth_corners(frame, side)
+        assert preds, f"nothing predicted in the {side} image"
+        n = 0
+        for p in preds:
+            for (c, r), xy in zip(p.ids, p.xy):
+                key = (p.board.name, int(c), int(r))
+                if key in seen:
+                    assert np.linalg.norm(xy - seen[key]) < 0.05, key
+                    n += 1
+        # Boards that face the camera are predicted; nearly all of the rendered corners are among them.
+        assert n >= 0.8 * len(seen)
+
+
+def test_tracking_confirms_displaced_predictions_to_subpixel(robot) -> None:
+    folder, truth, cfg = robot
+    frame = truth["frames"][1]
+    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
+    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    # The prediction of a moving robot is a few pixels off: shift every board by 2.5 px.
+    shifted = [CornerPrediction(p.board, p.ids, p.xy + np.array([2.0, -1.5])) for p in preds]
+    found = track_boards(image, shifted)
+    seen = truth_corners(frame, "left")
+    errors = [np.linalg.norm(xy - seen[(d.board, int(c), int(r))]) for d in found
+              for (c, r), xy in zip(d.ids, d.corners)]
+    assert confirmed_fraction(preds, found) > 0.6
+    assert np.median(errors) < 0.05 and max(errors) < 0.3
+    assert all(d.board in {p.board.name for p in preds} for d in found)
+
+
+def test_tracking_rejects_boards_that_are_not_there(robot) -> None:
+    folder, truth, cfg = robot
+    frame = truth["frames"][1]
+    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
+    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    # Ids off by one column: every corner lands on a real corner, but the square colours are inverted.
+    off_by_one = [CornerPrediction(p.board, p.ids + np.array([1, 0]), p.xy) for p in preds]
+    assert track_boards(image, off_by_one) == []
+    # A blank image, and an image of the room without the robot (the predictions fall on clutter).
+    assert track_boards(np.full_like(image, 128), preds) == []
+    noise = np.random.default_rng(1).integers(0, 255, image.shape, dtype=np.uint8)
+    assert track_boards(noise, preds) == []
+
+
+def test_tracked_pose_is_as_accurate_as_the_searched_one(robot) -> None:
+    folder, truth, cfg = robot
+    f0, f1, f2 = truth["frames"]
+    tracker = BoardTracker(cfg.target, cfg.cameras, TrackingSettings())
+    for f in (f0, f1):                       # the two latest poses: the truth itself
+        R, t = pose_of(f)
+        tracker.update(Pose(R, t, np.eye(6), "stereo", True), f["stamp_ns"])
+    left_pred, right_pred = tracker.predict(f2["stamp_ns"])
+    images = [cv2.imread(str(folder / f2[s]), cv2.IMREAD_GRAYSCALE) for s in ("left", "right")]
+    left, right = track_boards(images[0], left_pred), track_boards(images[1], right_pred)
+    pose = estimate_pose(left, right, cfg.target, cfg.cameras, cfg.pose)
+    assert pose.valid, pose.reason
+    R_true, t_true = pose_of(f2)
+    assert 1000 * np.linalg.norm(pose.t_m - t_true) < 0.3
+    assert np.degrees(np.linalg.norm(Rotation.from_matrix(pose.R @ R_true.T).as_rotvec())) < 0.05
+
+
+def test_tracker_predicts_only_from_a_recent_valid_pose(robot) -> None:
+    _folder, truth, cfg = robot
+    f0 = truth["frames"][0]
+    R, t = pose_of(f0)
+    tracker = BoardTracker(cfg.target, cfg.cameras, TrackingSettings(max_gap_s=0.1))
+    assert tracker.predict(f0["stamp_ns"]) is None                 # nothing seen yet
+    tracker.update(Pose(R, t, np.eye(6), "stereo", True), f0["stamp_ns"])
+    assert tracker.predict(f0["stamp_ns"] + 33_000_000) is not None
+    assert tracker.predict(f0["stamp_ns"] + 200_000_000) is None   # a gap longer than max_gap_s
+    tracker.update(Pose.invalid("no board detected"), f0["stamp_ns"] + 33_000_000)
+    assert tracker.predict(f0["stamp_ns"] + 66_000_000) is None    # an invalid pose forgets the motion
+    tracker.update(Pose(R, t, np.eye(6), "stereo", True), f0["stamp_ns"] + 100)
+    tracker.update(Pose(R, t, np.eye(6), "stereo", True), f0["stamp_ns"])     # back in time: a replay looped
+    assert len(tracker._poses) == 1
+    off = BoardTracker(cfg.target, cfg.cameras, TrackingSettings(enabled=False))
+    off.update(Pose(R, t, np.eye(6), "stereo", True), f0["stamp_ns"])
+    assert off.predict(f0["stamp_ns"] + 1) is None
+
+
+def test_loop_tracks_and_searches_again_when_the_robot_jumps(robot, tmp_path: Path) -> None:
+    """Frames 0, 1, 2 of the sequence, then frame 0 again (the robot jumps back): the loop searches frame 0,
+    tracks 1 and 2, finds that the prediction for the jump does not hold, and searches that frame."""
+    folder, _truth, _cfg = robot
+    jump = tmp_path / "jump"
+    for side in ("left", "right"):
+        (jump / side).mkdir(parents=True)
+        for k, src in enumerate((0, 1, 2, 0)):
+            (jump / side / f"{k:06d}.png").write_bytes((folder / side / f"{src:06d}.png").read_bytes())
+    (jump / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
+    cfg = write_config(tmp_path / "live.yaml", jump, free_endpoint(), source_extra={"pace": "fast"},
+                       loop={"latest_frame_wins": False, "stop_at_end": True})
+    loop = LiveLoop(load_live_config(cfg))
+    assert loop.run() == 0
+    assert loop.stats.frames == 4 and loop.stats.poses_valid == 4
+    assert loop.stats.tracked_frames == 2
