@@ -13,6 +13,12 @@
 ``pace: recorded`` (default) delivers frames in real time at the recorded intervals; ``pace: fast`` as
 fast as they decode. ``loop: true`` starts again at the end; later passes keep ``stamp_ns`` and ``seq``
 increasing (shifted by the length of the sequence), so only the first pass is bit-exact in time.
+
+``preload: true`` (image files only, not a video) decodes every image once at ``open()`` and hands out
+the decoded arrays, read-only, so that ``read()`` costs what a camera's does: a PNG decode per frame
+(~14 ms for 1280x800) would otherwise be counted as the consumer's time. Pixels, stamps, seq, looping
+and pacing are the same as without it; an unreadable file still raises its InputError at its own
+``read()``. ``preload_max_mb`` bounds the memory (estimated from the first images before decoding all).
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -35,6 +41,7 @@ from edgecal.images import IMAGE_SUFFIXES
 DEFAULT_FPS = 30.0
 # A rendered stereo sequence's ground truth (edgecal.synth), whose frames carry their capture stamps.
 SYNTH_TRUTH = "truth.json"
+MIB = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,60 @@ def read_image_file(path: Path) -> np.ndarray:
 def image_files(folder: Path) -> list[Path]:
     """The image files of ``folder`` in name order."""
     return sorted(f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
+
+
+@dataclass(frozen=True)
+class Unreadable:
+    """A preloaded file that did not decode: its InputError message, raised again at that frame's read()."""
+
+    message: str
+
+
+def preload_images(files: Sequence[Path], where: Path | str, max_mb: float, group: int = 1
+                   ) -> list[np.ndarray | Unreadable]:
+    """Decode ``files`` once: read-only arrays (Unreadable for a file that does not decode), in order.
+
+    ``group`` files make one frame (2 for stereo pairs): the first group's decoded size times the number
+    of groups is the memory estimate, refused with an InputError naming ``where`` before the rest is
+    decoded when it exceeds ``max_mb``; the running total is checked too (the images may differ in size).
+    A file that does not decode is kept as Unreadable, so that its frame fails at read() as without preload.
+    """
+    def refuse(estimate_bytes: float) -> InputError:
+        mb = estimate_bytes / MIB
+        size = f"{mb:.0f}" if mb >= 10 else f"{mb:.2f}"
+        return InputError(f"{where}: preloading {len(files)} images needs about {size} MB, more than "
+                          f"preload_max_mb ({max_mb:g}); raise preload_max_mb or set preload: false")
+
+    out: list[np.ndarray | Unreadable] = []
+    total = 0
+    limit = max_mb * MIB
+    estimated = False
+    for i, path in enumerate(files):
+        try:
+            image = read_image_file(path)
+        except InputError as exc:
+            out.append(Unreadable(str(exc)))
+        else:
+            # Read-only: the same array is handed out on every loop pass, so a consumer writing into
+            # it would corrupt later passes; this makes such a write fail loudly instead.
+            image.flags.writeable = False
+            out.append(image)
+            total += image.nbytes
+        if not estimated and i + 1 >= group and total > 0:
+            # Once, from the first frame that decoded (normally the first group): refuse before the long decode.
+            estimated = True
+            if total / (i + 1) * len(files) > limit:
+                raise refuse(total / (i + 1) * len(files))
+        if total > limit:
+            raise refuse(total / (i + 1) * len(files))
+    return out
+
+
+def _preloaded(entry: np.ndarray | Unreadable) -> np.ndarray:
+    """The preloaded array, or the file's InputError raised anew (as a per-frame decode would)."""
+    if isinstance(entry, Unreadable):
+        raise InputError(entry.message)
+    return entry
 
 
 class Pacer:
@@ -135,6 +196,10 @@ class ReplaySource(Source):
         self._seq: _Sequence | None = None
         self._pacer = Pacer(spec.settings.pace == "fast")
         self._span_ns = 0
+        self._images: list[np.ndarray | Unreadable] | None = None  # preload: the decoded frames
+        if video is not None and spec.settings.preload:
+            raise InputError(f"{video}: preload works for image files only, not a video; "
+                             "remove the preload setting to replay the video")
 
     def describe(self) -> dict:
         """The replayed recording's own source description (so a re-recording keeps it), else the URI."""
@@ -144,7 +209,7 @@ class ReplaySource(Source):
         return out
 
     def open(self) -> None:
-        """Open the video (if any) and rewind."""
+        """Open the video (if any) and rewind; with ``preload``, decode every image now."""
         if self.video is not None:
             self._cap = cv2.VideoCapture(str(self.video))
             if not self._cap.isOpened():
@@ -157,6 +222,10 @@ class ReplaySource(Source):
         else:
             stamps = [it.stamp_ns for it in self.items]
             period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else int(1e9 / DEFAULT_FPS)
+            if self.spec.settings.preload and self._images is None:
+                files: list[Path] = [it.file for it in self.items]  # type: ignore[misc]
+                self._images = preload_images(files, Path(self.spec.target).expanduser(),
+                                              self.spec.settings.preload_max_mb)
             self._seq = _Sequence(len(self.items), period, self.spec.settings.loop)
             self._span_ns = (stamps[-1] - stamps[0] + period) if stamps else 0
 
@@ -188,7 +257,10 @@ class ReplaySource(Source):
         if k is None:
             return None
         item = self.items[k]
-        image = read_image_file(item.file)  # type: ignore[arg-type]
+        if self._images is not None:
+            image = _preloaded(self._images[k])
+        else:
+            image = read_image_file(item.file)  # type: ignore[arg-type]
         shift = self._seq.passes * self._span_ns
         stamp = item.stamp_ns + shift
         self._pacer.wait(stamp)
@@ -196,11 +268,12 @@ class ReplaySource(Source):
         return Frame(image, stamp, time.monotonic_ns(), seq, item.camera_id, item.exposure_us, item.gain_db)
 
     def close(self) -> None:
-        """Release the video file."""
+        """Release the video file and the preloaded frames."""
         if self._cap is not None:
             self._cap.release()
             self._cap = None
         self._seq = None
+        self._images = None
 
 
 class StereoReplaySource(StereoSource):
@@ -215,6 +288,7 @@ class StereoReplaySource(StereoSource):
         self._seq: _Sequence | None = None
         self._pacer = Pacer(spec.settings.pace == "fast")
         self._span_ns = 0
+        self._images: list[np.ndarray | Unreadable] | None = None  # preload: left, right, left, right ...
 
     def describe(self) -> dict:
         """The replayed recording's own description, if any, and the replay settings."""
@@ -224,7 +298,11 @@ class StereoReplaySource(StereoSource):
         return out
 
     def open(self) -> None:
-        """Rewind."""
+        """Rewind; with ``preload``, decode every image now."""
+        if self.spec.settings.preload and self._images is None:
+            files: list[Path] = [it.file for pair in self.pairs for it in pair]  # type: ignore[misc]
+            self._images = preload_images(files, Path(self.spec.target).expanduser(),
+                                          self.spec.settings.preload_max_mb, group=2)
         stamps = [min(a.stamp_ns, b.stamp_ns) for a, b in self.pairs]
         period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else int(1e9 / DEFAULT_FPS)
         self._seq = _Sequence(len(self.pairs), period, self.spec.settings.loop)
@@ -240,8 +318,11 @@ class StereoReplaySource(StereoSource):
         shift = self._seq.passes * self._span_ns
         seq_shift = self._seq.passes * len(self.pairs)
         frames = []
-        for item in self.pairs[k]:
-            frames.append((read_image_file(item.file), item))  # type: ignore[arg-type]
+        for side, item in enumerate(self.pairs[k]):
+            if self._images is not None:
+                frames.append((_preloaded(self._images[2 * k + side]), item))
+            else:
+                frames.append((read_image_file(item.file), item))  # type: ignore[arg-type]
         self._pacer.wait(min(it.stamp_ns for _, it in frames) + shift)
         now = time.monotonic_ns()
         left, right = (Frame(img, it.stamp_ns + shift, now, it.seq + seq_shift, it.camera_id, it.exposure_us,
@@ -249,8 +330,9 @@ class StereoReplaySource(StereoSource):
         return StereoFrame(left, right)
 
     def close(self) -> None:
-        """Nothing to release but the position."""
+        """Release the position and the preloaded frames."""
         self._seq = None
+        self._images = None
 
 
 def _synth_sequence(path: Path, spec: SourceSpec) -> list[tuple[ReplayItem, ReplayItem]] | None:

@@ -52,7 +52,7 @@ COMMON_FIELDS = ("timeout_s", "camera_id", "latest_only")
 
 # Settings each driver understands (a field a driver cannot honour is an error, not silently ignored).
 DRIVER_FIELDS: dict[str, tuple[str, ...]] = {
-    "replay": ("pace", "loop", "fps"),
+    "replay": ("pace", "loop", "fps", "preload", "preload_max_mb"),
     "v4l2": ("width", "height", "fps", "pixel_format", "exposure_us", "gain", "buffers"),
     "aravis": ("width", "height", "fps", "pixel_format", "exposure_us", "gain_db", "trigger", "packet_size",
                "buffers"),
@@ -96,6 +96,8 @@ class SourceSettings:
     buffers: int = 4
     pace: str = "recorded"          # replay: "recorded" (real time) or "fast"
     loop: bool = False
+    preload: bool = False           # replay: decode every image once at open() (frames as a camera gives them)
+    preload_max_mb: float = 2048.0  # replay: refuse a preload whose decoded frames would need more (MiB)
     max_skew_ms: float = 5.0
 
     def as_dict(self) -> dict[str, Any]:
@@ -171,6 +173,10 @@ def _read_settings(r: ConfigReader, driver: str, skip: tuple[str, ...] = ()) -> 
         kw["pace"] = r.string("pace", choices=("recorded", "fast"))
     if r.has("loop"):
         kw["loop"] = r.boolean("loop")
+    if r.has("preload"):
+        kw["preload"] = r.boolean("preload")
+    if r.has("preload_max_mb"):
+        kw["preload_max_mb"] = r.number("preload_max_mb", positive=True)
     if r.has("max_skew_ms"):
         kw["max_skew_ms"] = r.number("max_skew_ms", minimum=0, maximum=10000)
     return SourceSettings(**kw)

@@ -173,3 +173,150 @@ def test_a_camera_fault_during_recording_keeps_what_was_recorded(tmp_path: Path)
         record(src, tmp_path / "rec", frames=10)
     with open_source(f"replay:{tmp_path / 'rec'}?pace=fast") as rep:
         assert [f.stamp_ns for f in rep] == [f.stamp_ns for f in frames]
+
+
+def _write_mono_folder(folder: Path, n: int, shape: tuple[int, ...] = (40, 56, 3)) -> Path:
+    folder.mkdir(parents=True)
+    for i in range(n):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), render_frame(i, shape))
+    return folder
+
+
+def _write_stereo_recording(folder: Path, n: int) -> Path:
+    left = _camera_frames(n, (24, 32), np.uint16)
+    right = [Frame(render_frame(100 + i, (24, 32), np.uint16), f.stamp_ns + 700, f.recv_ns, f.seq, "cam1")
+             for i, f in enumerate(left)]
+
+    class Pairs(ListSource, StereoSource):
+        pass
+
+    with Pairs([StereoFrame(a, b) for a, b in zip(left, right)]) as src:
+        record(src, folder)
+    return folder
+
+
+def _write_stereo_folder(folder: Path, n: int) -> Path:
+    for side, off in (("left", 0), ("right", 50)):
+        (folder / side).mkdir(parents=True)
+        for i in range(n):
+            cv2.imwrite(str(folder / side / f"{i:03d}.png"), render_frame(off + i))
+    return folder
+
+
+def _frames_of(item: Frame | StereoFrame) -> list[Frame]:
+    return [item.left, item.right] if isinstance(item, StereoFrame) else [item]
+
+
+@pytest.mark.parametrize("layout", ["mono folder", "stereo folder", "stereo recording"])
+def test_preload_gives_the_same_frames_and_stamps_over_two_loop_passes(tmp_path: Path, layout: str) -> None:
+    n = 4
+    write = {"mono folder": _write_mono_folder, "stereo folder": _write_stereo_folder,
+             "stereo recording": _write_stereo_recording}[layout]
+    path = write(tmp_path / "seq", n)
+    runs = {}
+    for preload in ("false", "true"):
+        with open_source(f"replay:{path}?pace=fast&loop=true&fps=25&preload={preload}") as src:
+            runs[preload] = [src.read() for _ in range(2 * n)]
+    for plain, pre in zip(runs["false"], runs["true"]):
+        assert type(plain) is type(pre)
+        for a, b in zip(_frames_of(plain), _frames_of(pre)):
+            assert b.image.dtype == a.image.dtype and np.array_equal(a.image, b.image)
+            assert (b.stamp_ns, b.seq, b.camera_id, b.exposure_us, b.gain_db) == (
+                a.stamp_ns, a.seq, a.camera_id, a.exposure_us, a.gain_db)
+    # The second pass hands out the same decoded arrays, not decoded again.
+    first, second = _frames_of(runs["true"][0]), _frames_of(runs["true"][n])
+    assert all(a.image is b.image for a, b in zip(first, second))
+    assert second[0].seq == first[0].seq + n and second[0].stamp_ns > first[-1].stamp_ns
+
+
+def test_preloaded_frames_are_read_only_and_released_by_close(tmp_path: Path) -> None:
+    import weakref
+
+    folder = _write_mono_folder(tmp_path / "imgs", 3)
+    src = open_source(f"replay:{folder}?pace=fast&loop=true&preload=true")
+    with src:
+        frame = src.read()
+        assert not frame.image.flags.writeable
+        with pytest.raises(ValueError, match="read-only"):
+            frame.image[0, 0] = 0          # a consumer cannot corrupt the next loop pass
+        ref = weakref.ref(frame.image)
+        del frame
+        assert ref() is not None           # still held by the replay for the next pass
+    assert ref() is None                   # close() let go of it
+    with src:                              # and a re-open decodes again
+        assert np.array_equal(src.read().image, render_frame(0, (40, 56, 3)))
+
+
+def test_preload_is_paced_like_a_plain_replay(tmp_path: Path) -> None:
+    folder = _write_mono_folder(tmp_path / "imgs", 3)
+    with open_source(f"replay:{folder}?fps=20&preload=true") as src:
+        t0 = time.monotonic()
+        frames = list(src)
+        elapsed = time.monotonic() - t0
+    assert len(frames) == 3 and elapsed >= 0.095  # two 50 ms intervals, slept for in real time
+
+
+def test_preload_refuses_more_memory_than_its_bound_before_decoding_all(tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    import edgecal.drivers.replay as replay
+
+    folder = _write_mono_folder(tmp_path / "imgs", 10, (100, 100, 3))   # 10 x 30000 bytes decoded
+    decoded = []
+    real = replay.read_image_file
+    monkeypatch.setattr(replay, "read_image_file", lambda p: decoded.append(p) or real(p))
+    src = open_source(f"replay:{folder}?preload=true&preload_max_mb=0.1")
+    with pytest.raises(InputError, match=r"imgs: preloading 10 images needs about 0\.29 MB, more than "
+                                         r"preload_max_mb \(0\.1\); raise preload_max_mb or set preload: false"):
+        src.open()
+    assert len(decoded) == 1                       # estimated from the first image, the rest never decoded
+    seq = _write_stereo_folder(tmp_path / "seq", 10)  # 2 x 10 x 3072 bytes
+    decoded.clear()
+    with pytest.raises(InputError, match="seq: preloading 20 images needs about 0.06 MB"):
+        open_source(f"replay:{seq}?preload=true&preload_max_mb=0.05").open()
+    assert len(decoded) == 2                       # one left and one right image
+    with open_source(f"replay:{seq}?pace=fast&preload=true&preload_max_mb=0.1") as src:
+        assert len(list(src)) == 10
+
+
+@pytest.mark.parametrize("stereo", [False, True])
+def test_a_corrupt_file_behaves_the_same_with_and_without_preload(tmp_path: Path, stereo: bool) -> None:
+    if stereo:
+        path = _write_stereo_folder(tmp_path / "seq", 3)
+        (path / "right" / "001.png").write_bytes(b"not a png")
+    else:
+        path = _write_mono_folder(tmp_path / "imgs", 3)
+        (path / "001.png").write_bytes((path / "001.png").read_bytes()[:60])   # truncated
+    outcomes = {}
+    for preload in ("false", "true"):
+        got: list = []
+        with open_source(f"replay:{path}?pace=fast&loop=true&preload={preload}") as src:
+            for _ in range(6):             # two passes: the bad frame fails each time, reading goes on
+                try:
+                    item = src.read()
+                except InputError as exc:
+                    got.append(str(exc))
+                else:
+                    got.append([(f.stamp_ns, f.seq, f.image.tobytes()) for f in _frames_of(item)])
+        outcomes[preload] = got
+    assert outcomes["true"] == outcomes["false"]
+    assert isinstance(outcomes["true"][1], str) and "001.png" in outcomes["true"][1]
+    assert outcomes["true"][4] == outcomes["true"][1] and not isinstance(outcomes["true"][2], str)
+
+
+def test_preload_settings_are_validated_and_refused_for_a_video(tmp_path: Path) -> None:
+    from edgecal.drivers import parse_uri, spec_from_config
+    from edgecal.errors import ConfigError
+
+    s = spec_from_config({"driver": "replay", "path": "runs/a", "preload": True, "preload_max_mb": 512}, "cam.yaml")
+    assert (s.settings.preload, s.settings.preload_max_mb) == (True, 512.0)
+    assert (parse_uri("replay:x").settings.preload, parse_uri("replay:x").settings.preload_max_mb) == (False, 2048.0)
+    with pytest.raises(ConfigError, match="field 'preload' must be true or false"):
+        parse_uri("replay:x?preload=2")
+    with pytest.raises(ConfigError, match="field 'preload_max_mb' must be greater than 0"):
+        parse_uri("replay:x?preload_max_mb=0")
+    with pytest.raises(ConfigError, match="field 'preload' is not a setting of the v4l2 driver"):
+        parse_uri("v4l2:/dev/video0?preload=true")
+    video = tmp_path / "clip.avi"
+    video.write_bytes(b"\0" * 64)      # refused by its kind before it is opened
+    with pytest.raises(InputError, match=r"clip\.avi: preload works for image files only, not a video"):
+        open_source(f"replay:{video}?preload=true")

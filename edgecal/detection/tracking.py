@@ -62,23 +62,27 @@ def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, mi
     darker than the light ones by ``min_contrast`` on average and each square on its own side of the
     midpoint between the two means.
     """
-    at = {(int(c), int(r)): p for (c, r), p in zip(ids, xy)}
-    dark, light = [], []
-    h, w = smooth.shape
-    for (c, r), p in at.items():
-        q = (at.get((c + 1, r)), at.get((c, r + 1)), at.get((c + 1, r + 1)))
-        if any(v is None for v in q):
-            continue
-        x, y = 0.25 * (p + q[0] + q[1] + q[2])
-        xi, yi = int(round(x)), int(round(y))
-        if not (1 <= xi < w - 1 and 1 <= yi < h - 1):
-            continue
-        value = float(smooth[yi - 1:yi + 2, xi - 1:xi + 2].mean())
-        (dark if (c + r) % 2 == 0 else light).append(value)
-    if not dark or not light:
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) < 4:
         return False
-    mid = 0.5 * (np.mean(dark) + np.mean(light))
-    return bool(np.mean(light) - np.mean(dark) >= min_contrast and max(dark) < mid < min(light))
+    lo = ids.min(axis=0)
+    span = ids.max(axis=0) - lo + 1
+    grid = np.full((span[1], span[0], 2), np.nan)
+    grid[ids[:, 1] - lo[1], ids[:, 0] - lo[0]] = xy
+    centres = 0.25 * (grid[:-1, :-1] + grid[:-1, 1:] + grid[1:, :-1] + grid[1:, 1:])
+    rows, cols = np.nonzero(np.isfinite(centres).all(axis=2))
+    h, w = smooth.shape
+    xi = np.rint(centres[rows, cols, 0]).astype(np.int64)
+    yi = np.rint(centres[rows, cols, 1]).astype(np.int64)
+    inside = (xi >= 1) & (xi < w - 1) & (yi >= 1) & (yi < h - 1)
+    rows, cols, xi, yi = rows[inside], cols[inside], xi[inside], yi[inside]
+    value = sum(smooth[yi + dy, xi + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)) / 9.0
+    black = (rows + lo[1] + cols + lo[0]) % 2 == 0
+    dark, light = value[black], value[~black]
+    if not dark.size or not light.size:
+        return False
+    mid = 0.5 * (dark.mean() + light.mean())
+    return bool(light.mean() - dark.mean() >= min_contrast and dark.max() < mid < light.min())
 
 
 def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
