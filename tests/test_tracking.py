@@ -166,3 +166,22 @@ def test_loop_tracks_and_searches_again_when_the_robot_jumps(robot, tmp_path: Pa
     assert loop.run() == 0
     assert loop.stats.frames == 4 and loop.stats.poses_valid == 4
     assert loop.stats.tracked_frames == 2
+
+
+def test_tracking_recovers_corners_a_scaled_prediction_misses_at_first(robot) -> None:
+    """The robot came closer than predicted: each board's predictions are 8 % too small about its centre,
+    so its outer corners are more than a quarter square off. The motion fitted to the inner corners finds them."""
+    folder, truth, cfg = robot
+    frame = truth["frames"][1]
+    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
+    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    shrunk = [CornerPrediction(p.board, p.ids, p.xy.mean(axis=0) + 0.92 * (p.xy - p.xy.mean(axis=0))) for p in preds]
+    seen = truth_corners(frame, "left")
+    found = {d.board: d for d in track_boards(image, shrunk)}
+    for p in preds:
+        far = np.linalg.norm(0.08 * (p.xy - p.xy.mean(axis=0)), axis=1)
+        assert far.max() > 4.0                   # a first pass alone could not confirm these
+        d = found[p.board.name]
+        assert len(d.ids) == len(p.ids), p.board.name
+        errors = [np.linalg.norm(xy - seen[(d.board, int(c), int(r))]) for (c, r), xy in zip(d.ids, d.corners)]
+        assert max(errors) < 0.3

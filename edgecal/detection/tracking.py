@@ -39,19 +39,44 @@ MIN_CONFIRMED_FRACTION = 0.5
 MAX_MOTION_RESIDUAL_PX = 0.5
 
 
-def motion_inliers(predicted: np.ndarray, found: np.ndarray, max_residual_px: float = MAX_MOTION_RESIDUAL_PX
-                   ) -> np.ndarray:
-    """Which found corners (M, 2) follow the affine map from their predictions (M, 2) that most of them
-    follow (RANSAC, then least squares on the inliers); all False when fewer than 4 are given."""
+def board_motion(predicted: np.ndarray, found: np.ndarray, max_residual_px: float = MAX_MOTION_RESIDUAL_PX
+                 ) -> tuple[np.ndarray | None, np.ndarray]:
+    """The affine map (2x3) from predicted to found corners (M, 2 each) that most of them follow (RANSAC,
+    then least squares on the inliers), and which corners follow it to ``max_residual_px``. (None, all
+    False) when fewer than 4 corners are given or no map is found."""
     if len(found) < 4:
-        return np.zeros(len(found), dtype=bool)
-    M, inliers = cv2.estimateAffine2D(predicted.astype(np.float32), found.astype(np.float32), method=cv2.RANSAC,
-                                      ransacReprojThreshold=max_residual_px, maxIters=200, confidence=0.999,
-                                      refineIters=10)
+        return None, np.zeros(len(found), dtype=bool)
+    M, _ = cv2.estimateAffine2D(predicted.astype(np.float32), found.astype(np.float32), method=cv2.RANSAC,
+                                ransacReprojThreshold=max_residual_px, maxIters=200, confidence=0.999,
+                                refineIters=10)
     if M is None:
-        return np.zeros(len(found), dtype=bool)
-    mapped = predicted @ M[:, :2].T + M[:, 2]
-    return np.linalg.norm(mapped - found, axis=1) <= max_residual_px
+        return None, np.zeros(len(found), dtype=bool)
+    return M, np.linalg.norm(predicted @ M[:, :2].T + M[:, 2] - found, axis=1) <= max_residual_px
+
+
+def _confirm(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, predicted: np.ndarray, spacing: np.ndarray,
+             p: DetectorParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One board's corners: refined positions, confirmed mask and probe quality (see track_boards).
+
+    A first pass verifies the predictions as they are. When some corners were missed (a prediction more
+    than a quarter square off: the first frames have no velocity yet, thin squares of a slanted board),
+    the board's motion fitted to the confirmed ones moves the missed predictions and they are verified once more.
+    """
+    pinned = np.ones(len(predicted), dtype=bool)
+    refined, good, quality = verify_predictions(smooth, gx, gy, predicted, spacing, p, pinned)
+    idx = np.nonzero(good)[0]
+    M, follows = board_motion(predicted[idx], refined[idx])
+    good[idx[~follows]] = False
+    missed = np.nonzero(~good)[0]
+    if M is None or not len(missed):
+        return refined, good, quality
+    moved = np.ascontiguousarray(predicted[missed] @ M[:, :2].T + M[:, 2])
+    r2, g2, q2 = verify_predictions(smooth, gx, gy, moved, spacing[missed], p, pinned[missed])
+    refined[missed], good[missed], quality[missed] = r2, g2, q2
+    idx = np.nonzero(good)[0]
+    _M, follows = board_motion(predicted[idx], refined[idx])
+    good[idx[~follows]] = False
+    return refined, good, quality
 
 
 def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, min_contrast: float) -> bool:
@@ -90,7 +115,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     """The predicted boards that are really there, corners refined to sub-pixel (OpenCV pixel convention).
 
     Only the image region around the predictions is processed. A corner is confirmed when the probe sees a
-    chessboard corner near its prediction and it follows the board's motion (motion_inliers). A board is
+    chessboard corner near its prediction and it follows the board's motion (board_motion). A board is
     kept when at least MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed
     and its squares' colours match its ids; its Detection holds the confirmed corners (``complete`` when they are all of
     the board). Boards not confirmed are left out: the caller decides whether to search the image.
@@ -121,9 +146,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     found = []
     for pr, sp in zip(predictions, spacing):
         local = np.ascontiguousarray(pr.xy - offset)
-        refined, good, quality = verify_predictions(smooth, gx, gy, local, sp, p, np.ones(len(local), bool))
-        idx = np.nonzero(good)[0]
-        good[idx[~motion_inliers(local[idx], refined[idx])]] = False
+        refined, good, quality = _confirm(smooth, gx, gy, local, sp, p)
         if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(local)):
             continue
         ids, xy = pr.ids[good], refined[good]
