@@ -185,9 +185,21 @@ def pose_errors(messages: list[dict], truth: dict) -> dict:
 
 
 def latency(messages: list[dict]) -> dict:
-    lat = np.array([m["latency_ns"] for m in messages if m["type"] == "pose"], dtype=float) / 1e6
-    return {"median_ms": float(np.median(lat)), "p99_ms": float(np.percentile(lat, 99)), "n": int(lat.size)} \
-        if lat.size else {}
+    """Capture->publish latency over all poses, and after acquisition (from the second tracked frame on:
+    the frames searched in full at the start, and those that waited behind them, left out)."""
+    poses = [m for m in messages if m["type"] == "pose"]
+    lat = np.array([m["latency_ns"] for m in poses], dtype=float) / 1e6
+    if not lat.size:
+        return {}
+    tracked = [i for i, m in enumerate(poses) if m["quality"].get("detection") == "tracked"]
+    steady = lat[tracked[1]:] if len(tracked) > 1 else lat[:0]
+    out = {"median_ms": float(np.median(lat)), "p99_ms": float(np.percentile(lat, 99)), "n": int(lat.size),
+           "acquisition_frames": tracked[1] if len(tracked) > 1 else len(poses),
+           "acquisition_max_ms": float(lat[:tracked[1]].max()) if len(tracked) > 1 else float(lat.max())}
+    if steady.size:
+        out.update({"steady_median_ms": float(np.median(steady)), "steady_p99_ms": float(np.percentile(steady, 99)),
+                    "steady_max_ms": float(steady.max()), "steady_n": int(steady.size)})
+    return out
 
 
 def detection_times(folder: Path, truth: dict, n: int) -> dict:
@@ -265,10 +277,15 @@ def main() -> int:
     print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames, one pass, {results['cores']} cores "
           f"(NUMBA_NUM_THREADS=1; left/right in two threads; replay {'preloaded' if results['preload'] else 'decoding PNGs'}); "
           f"load average {results['load_average_before']:.1f} before, {results['load_average_after']:.1f} after")
-    print(f"real time (30 fps replay, latest-frame-wins): {r['fps']:.1f} fps processed, latency median "
-          f"{r['latency'].get('median_ms', float('nan')):.1f} ms p99 {r['latency'].get('p99_ms', float('nan')):.1f} ms, "
+    lat = r["latency"]
+    print(f"real time (30 fps replay, latest-frame-wins): {r['fps']:.1f} fps processed, "
           f"{r['dropped_frames']} frames dropped, {r['tracked_frames']}/{r['frames']} tracked, "
           f"CPU {r['cpu_percent_of_one_core']:.0f}% of one core ({r['cpu_ms_per_frame']:.1f} CPU ms per frame)")
+    print(f"  latency over all {lat.get('n')} poses: median {lat.get('median_ms', float('nan')):.1f} ms, p99 "
+          f"{lat.get('p99_ms', float('nan')):.1f} ms; acquisition (first {lat.get('acquisition_frames')} poses) "
+          f"up to {lat.get('acquisition_max_ms', float('nan')):.0f} ms; after it ({lat.get('steady_n', 0)} poses): "
+          f"median {lat.get('steady_median_ms', float('nan')):.1f} ms, p99 {lat.get('steady_p99_ms', float('nan')):.1f} ms, "
+          f"max {lat.get('steady_max_ms', float('nan')):.1f} ms")
     for name, x in (("as fast as possible", f), ("same, tracking off", s)):
         print(f"{name}: {x['fps']:.1f} fps sustained over {x['frames']} frames ({x['tracked_frames']} tracked), "
               f"CPU {x['cpu_percent_of_one_core']:.0f}% of one core ({x['cpu_ms_per_frame']:.1f} CPU ms per frame)")
@@ -290,7 +307,8 @@ def main() -> int:
     e = r["errors"]
     print("targets (real-time run): " + ", ".join([
         f"30 fps {'met' if f['fps'] >= THRESHOLDS['fps'] and r['fps'] >= 0.97 * THRESHOLDS['fps'] else 'NOT met'}",
-        f"p99 < 33 ms {'met' if r['latency'].get('p99_ms', 1e9) < THRESHOLDS['p99_ms'] else 'NOT met'}",
+        f"p99 < 33 ms {'met' if lat.get('p99_ms', 1e9) < THRESHOLDS['p99_ms'] else 'NOT met'} over all poses, "
+        f"{'met' if lat.get('steady_p99_ms', 1e9) < THRESHOLDS['p99_ms'] else 'NOT met'} after acquisition",
         f"position < 1 mm {'met' if e.get('position_mm', {}).get('max', 1e9) < 1 else 'NOT met'} (max)",
         f"rotation < 0.1 deg {'met' if e.get('rotation_deg', {}).get('max', 1e9) < 0.1 else 'NOT met'} (max)"]))
     if args.json:

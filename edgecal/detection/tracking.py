@@ -8,8 +8,9 @@ the detector's own (verify_predictions, as for the holes of a grid); what is ski
 
 Why a wrong prediction cannot pass as a board: a corner is kept only if the refinement stays within a
 quarter of a square of its prediction, so a whole board would have to be predicted about a square off to
-lock onto the neighbouring corners, and a shift by one square along a row or column inverts the colour of
-every square, which the colour check rejects.
+lock onto the neighbouring corners. A shift by one square along a row or column inverts the colour of
+every square, which the colour check rejects; a diagonal shift keeps the colours but leaves real corners
+one square beyond one side of the board, which the border check rejects.
 
 Why a single corner cannot slide off: between the predicted and the found corners of one board the
 motion is smooth - over a board and a frame's worth of prediction error, an affine map to a small
@@ -54,31 +55,6 @@ def board_motion(predicted: np.ndarray, found: np.ndarray, max_residual_px: floa
     return M, np.linalg.norm(predicted @ M[:, :2].T + M[:, 2] - found, axis=1) <= max_residual_px
 
 
-def _confirm(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, predicted: np.ndarray, spacing: np.ndarray,
-             p: DetectorParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One board's corners: refined positions, confirmed mask and probe quality (see track_boards).
-
-    A first pass verifies the predictions as they are. When some corners were missed (a prediction more
-    than a quarter square off: the first frames have no velocity yet, thin squares of a slanted board),
-    the board's motion fitted to the confirmed ones moves the missed predictions and they are verified once more.
-    """
-    pinned = np.ones(len(predicted), dtype=bool)
-    refined, good, quality = verify_predictions(smooth, gx, gy, predicted, spacing, p, pinned)
-    idx = np.nonzero(good)[0]
-    M, follows = board_motion(predicted[idx], refined[idx])
-    good[idx[~follows]] = False
-    missed = np.nonzero(~good)[0]
-    if M is None or not len(missed):
-        return refined, good, quality
-    moved = np.ascontiguousarray(predicted[missed] @ M[:, :2].T + M[:, 2])
-    r2, g2, q2 = verify_predictions(smooth, gx, gy, moved, spacing[missed], p, pinned[missed])
-    refined[missed], good[missed], quality[missed] = r2, g2, q2
-    idx = np.nonzero(good)[0]
-    _M, follows = board_motion(predicted[idx], refined[idx])
-    good[idx[~follows]] = False
-    return refined, good, quality
-
-
 def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, min_contrast: float) -> bool:
     """Whether the squares framed by confirmed corners have the colours their ids imply.
 
@@ -110,14 +86,58 @@ def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, mi
     return bool(light.mean() - dark.mean() >= min_contrast and dark.max() < mid < light.min())
 
 
+def beyond_border(ids: np.ndarray, xy: np.ndarray, cols: int, rows: int, per_side: int = 3
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Where corners one square beyond each side of the board would be, extrapolated from the two
+    outermost confirmed corners of up to ``per_side`` rows or columns spread along the side (a labelling
+    one square off shifts whole sides, so a few points tell): (K, 2) points and (K,) side numbers 0..3
+    (col -1, col ``cols``, row -1, row ``rows``). On the real board these points are its margin."""
+    grid = np.full((rows, cols, 2), np.nan)
+    grid[ids[:, 1], ids[:, 0]] = xy
+    sides = [(grid[:, 0], grid[:, 1]), (grid[:, -1], grid[:, -2]), (grid[0, :], grid[1, :]), (grid[-1, :], grid[-2, :])]
+    points, labels = [], []
+    for k, (edge, inner) in enumerate(sides):
+        ext = (2.0 * edge - inner)[np.isfinite(2.0 * edge - inner).all(axis=1)]
+        if len(ext) > per_side:
+            ext = ext[np.linspace(0, len(ext) - 1, per_side).round().astype(np.int64)]
+        points.append(ext)
+        labels.append(np.full(len(ext), k))
+    return np.concatenate(points), np.concatenate(labels)
+
+
+def slipped_sides(corner: np.ndarray, sides: np.ndarray) -> bool:
+    """Whether corners were found one square beyond a side of the board (``corner`` per point of
+    beyond_border, ``sides`` its side): at least two on one side and half of those looked at there. The
+    board's corners were then labelled one square off, e.g. a prediction more than a square wrong that
+    landed on the diagonal neighbours (the square colours cannot tell that shift)."""
+    for k in range(4):
+        on_side = sides == k
+        if corner[on_side].sum() >= max(2, 0.5 * on_side.sum()):
+            return True
+    return False
+
+
+def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: list[np.ndarray],
+                   spacing: list[np.ndarray], p: DetectorParams, pinned: bool
+                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """verify_predictions over the points of several boards in one call; (refined, good, quality) per board."""
+    if not points:
+        return []
+    cat = np.ascontiguousarray(np.concatenate(points))
+    refined, good, quality = verify_predictions(smooth, gx, gy, cat, np.concatenate(spacing), p,
+                                                np.full(len(cat), pinned))
+    bounds = np.cumsum([0] + [len(x) for x in points])
+    return [(refined[i:j], good[i:j], quality[i:j]) for i, j in zip(bounds[:-1], bounds[1:])]
+
+
 def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
                  params: DetectorParams | None = None) -> list[Detection]:
     """The predicted boards that are really there, corners refined to sub-pixel (OpenCV pixel convention).
 
     Only the image region around the predictions is processed. A corner is confirmed when the probe sees a
     chessboard corner near its prediction and it follows the board's motion (board_motion). A board is
-    kept when at least MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed
-    and its squares' colours match its ids; its Detection holds the confirmed corners (``complete`` when they are all of
+    kept when at least MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed,
+    its squares' colours match its ids and there are no corners one square beyond its sides; its Detection holds the confirmed corners (``complete`` when they are all of
     the board). Boards not confirmed are left out: the caller decides whether to search the image.
     """
     p = params or DEFAULT_PARAMS
@@ -132,28 +152,60 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     reach = max(float(subpixel_window(all_spacing).max()),
                 float(np.clip(p.probe_radius_per_spacing * all_spacing, p.probe_radius_min_px,
                               p.probe_radius_max_px).max()))
-    margin = int(np.ceil(reach)) + 4
+    # The crop also holds one square beyond every board (the border check looks there).
+    margin = int(np.ceil(reach + all_spacing.max())) + 4
     x0, y0 = (max(0, int(np.floor(v)) - margin) for v in all_xy.min(axis=0))
     x1 = min(w, int(np.ceil(all_xy[:, 0].max())) + margin + 1)
     y1 = min(h, int(np.ceil(all_xy[:, 1].max())) + margin + 1)
     if x1 - x0 < 8 or y1 - y0 < 8:
         return []
     crop = grey[y0:y1, x0:x1]
-    smooth = smooth_image(crop, smoothing_sigma(estimate_noise_sigma(crop)))
+    # Noise from every 6th pixel: the crop around a robot's boards still gives thousands of samples.
+    smooth = smooth_image(crop, smoothing_sigma(estimate_noise_sigma(crop, stride=6)))
     gx, gy = gradients(smooth)
     offset = np.array([x0, y0], dtype=np.float64)
 
-    found = []
-    for pr, sp in zip(predictions, spacing):
-        local = np.ascontiguousarray(pr.xy - offset)
-        refined, good, quality = _confirm(smooth, gx, gy, local, sp, p)
-        if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(local)):
+    local = [np.ascontiguousarray(pr.xy - offset) for pr in predictions]
+    # Pass 1: every prediction as it is, all boards in one call.
+    results = [list(r) for r in _verify_boards(smooth, gx, gy, local, spacing, p, True)]
+    motions: list[np.ndarray | None] = []
+    for pred, res in zip(local, results):
+        idx = np.nonzero(res[1])[0]
+        M, follows = board_motion(pred[idx], res[0][idx])
+        res[1][idx[~follows]] = False
+        motions.append(M)
+    # Pass 2: predictions pass 1 missed (more than a quarter square off: the first frames have no velocity
+    # yet, a slanted board's squares are thin), moved by their board's motion fitted to the confirmed ones.
+    retry = [k for k, (M, res) in enumerate(zip(motions, results)) if M is not None and not res[1].all()]
+    missed = [np.nonzero(~results[k][1])[0] for k in retry]
+    moved = [local[k][m] @ motions[k][:, :2].T + motions[k][:, 2] for k, m in zip(retry, missed)]
+    again_all = _verify_boards(smooth, gx, gy, moved, [spacing[k][m] for k, m in zip(retry, missed)], p, True)
+    for k, m, again in zip(retry, missed, again_all):
+        for part in range(3):
+            results[k][part][m] = again[part]
+        idx = np.nonzero(results[k][1])[0]
+        _M, follows = board_motion(local[k][idx], results[k][0][idx])
+        results[k][1][idx[~follows]] = False
+    # Boards with enough confirmed corners whose squares have the right colours...
+    kept = []
+    for pr, (refined, good, quality) in zip(predictions, results):
+        if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(good)):
             continue
-        ids, xy = pr.ids[good], refined[good]
-        if not square_colours_match(ids, xy, smooth, p.min_contrast):
+        if square_colours_match(pr.ids[good], refined[good], smooth, p.min_contrast):
+            kept.append((pr, pr.ids[good], refined[good], quality[good]))
+    # ... and no corners one square beyond their sides (all boards in one call; probed at half the square
+    # size, a ring of 0.3 squares: beyond the outer corners lie the margin and, a third of a square
+    # further, whatever the board is glued on - a full-size ring could see four sectors alternate there).
+    beyond = [beyond_border(ids, xy, pr.board.cols, pr.board.rows) for pr, ids, xy, _q in kept]
+    checks = _verify_boards(smooth, gx, gy, [b[0] for b in beyond],
+                            [np.full(len(b[0]), 0.5 * float(np.median(nearest_spacing(xy))))
+                             for b, (_pr, _ids, xy, _q) in zip(beyond, kept)], p, False)
+    found = []
+    for (pr, ids, xy, quality), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
+        if slipped_sides(corner, sides):
             continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
-        found.append(Detection(board.name, xy[order] + offset, ids[order], quality[good][order],
+        found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
                                (board.cols, board.rows), complete=len(ids) == board.n_corners))
     return found

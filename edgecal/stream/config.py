@@ -10,7 +10,7 @@
     pose:    {triangulation: linear, covariance_scale: max, corner_noise_px: 0.1, outlier_sigmas: 4.0,
               outlier_min_px: 0.5,
               min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
-    tracking: {enabled: true, max_gap_s: 0.1, min_confirmed_fraction: 0.6}
+    tracking: {enabled: true, max_gap_s: 0.5, min_confirmed_fraction: 0.6}
     publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4}
     loop:    {latest_frame_wins: true, status_period_s: 1.0, camera_lost_after_s: 2.0,
               reconnect_min_s: 0.5, reconnect_max_s: 10.0, stop_at_end: true}

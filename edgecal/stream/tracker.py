@@ -7,12 +7,10 @@ verifies those corners (edgecal.detection.tracking.track_boards) instead of sear
 which is what lets the loop keep up with 30 stereo frames a second. Any doubt - no recent pose, a gap
 in the stream, an invalid pose, too few confirmed corners - and the loop searches the images again.
 
-What tracking cannot see by itself is a prediction more than a square off that lands on the
-diagonal neighbours (a shift along a row or a column inverts the square colours and is caught): that
-takes an error of about 1.4 squares (40 mm for 30 mm squares) from constant-velocity extrapolation,
-which is why predictions are made only across short gaps (``max_gap_s``). On a target with boards on
-several faces such a slip also breaks the rigid fit (each board slips along its own face); a single
-flat board has only that short gap against it.
+A prediction that is wrong cannot pass as a board: edgecal.detection.tracking explains the checks
+(corners near their predictions and moving together, square colours, no corners beyond the board's
+sides). ``max_gap_s`` bounds how far a pose is extrapolated: after a longer gap (a stalled camera, the
+first search at start-up taking several frame intervals on a loaded machine) the frame is searched.
 """
 
 from __future__ import annotations
@@ -39,7 +37,7 @@ class TrackingSettings:
     """
 
     enabled: bool = True
-    max_gap_s: float = 0.1
+    max_gap_s: float = 0.5
     min_confirmed_fraction: float = 0.6
 
 
@@ -62,9 +60,9 @@ class BoardTracker:
         """Forget the motion (after an invalid pose, a reopened camera or a reload)."""
         self._poses.clear()
 
-    def predict(self, stamp_ns: int) -> tuple[list[CornerPrediction], list[CornerPrediction]] | None:
-        """The corners expected in the left and right images of the frame captured at ``stamp_ns``, or None
-        when there is no recent pose to predict from (the frame must then be searched)."""
+    def expected_pose(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """T_rig_robot (R, t in metres) expected at ``stamp_ns``, or None when there is no recent pose to
+        predict from (the frame must then be searched)."""
         if not self.settings.enabled or not self._poses:
             return None
         R_last, t_last, stamp_last = self._poses[-1]
@@ -72,14 +70,21 @@ class BoardTracker:
             return None
         if len(self._poses) == 2:
             R_prev, t_prev, stamp_prev = self._poses[0]
-            R, t = extrapolate_pose(R_prev, t_prev, stamp_prev, R_last, t_last, stamp_last, stamp_ns)
-        else:
-            R, t = R_last, t_last
-        left = predict_corners(R, t, self.cameras, "left", self.target)
-        right = predict_corners(R, t, self.cameras, "right", self.target)
-        if not left and not right:
+            return extrapolate_pose(R_prev, t_prev, stamp_prev, R_last, t_last, stamp_last, stamp_ns)
+        return R_last, t_last
+
+    def predict_side(self, expected: tuple[np.ndarray, np.ndarray], side: str) -> list[CornerPrediction]:
+        """The corners expected in the ``side`` ("left" or "right") image under the ``expected`` pose."""
+        return predict_corners(expected[0], expected[1], self.cameras, side, self.target)
+
+    def predict(self, stamp_ns: int) -> tuple[list[CornerPrediction], list[CornerPrediction]] | None:
+        """The corners expected in the left and right images of the frame captured at ``stamp_ns``, or None
+        when there is no recent pose or no board is expected in either image."""
+        expected = self.expected_pose(stamp_ns)
+        if expected is None:
             return None
-        return left, right
+        left, right = self.predict_side(expected, "left"), self.predict_side(expected, "right")
+        return (left, right) if left or right else None
 
     def update(self, pose: Pose, stamp_ns: int) -> None:
         """Take the frame's pose: a valid one becomes the newest of the two kept, an invalid one resets."""
