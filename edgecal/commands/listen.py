@@ -38,16 +38,19 @@ def format_message(msg: dict) -> str:
         lat = msg.get("latency_ms") or {}
         return (f"status {msg.get('state')}: {msg.get('fps')} fps, latency median {lat.get('median')} ms "
                 f"p99 {lat.get('p99')} ms, dropped {msg.get('dropped_frames')}, detection failures "
-                f"{msg.get('detection_failures')} {msg.get('message') or ''}").rstrip()
+                f"{msg.get('detection_failures')}, tracked {msg.get('tracked_frames')}/{msg.get('frames')} "
+                f"{msg.get('message') or ''}").rstrip()
     head = f"pose #{msg['seq']} latency {msg['latency_ns'] / 1e6:.1f} ms"
     q = msg["quality"]
     if msg["pose"] is None or not msg["valid"]:
         return f"{head} INVALID ({msg['reason']})"
     p, o = msg["pose"]["position_m"], msg["pose"]["orientation_xyzw"]
-    return (f"{head} {q['mode']} xyz_m [{p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f}] "
+    how = f" {q['detection']}" if q.get("detection") else ""
+    return (f"{head} {q['mode']}{how} xyz_m [{p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f}] "
             f"q_xyzw [{o[0]:+.4f} {o[1]:+.4f} {o[2]:+.4f} {o[3]:+.4f}] "
             f"rms {q['rms_px']} px std {q['position_std_mm']} mm {q['rotation_std_deg']} deg"
-            + (f" rejected {', '.join(q['rejected'])}" if q.get("rejected") else ""))
+            + (f" rejected {', '.join(q['rejected'])}" if q.get("rejected") else "")
+            + (f" outliers {q['outliers']}" if q.get("outliers") else ""))
 
 
 def run(args: argparse.Namespace) -> int:
