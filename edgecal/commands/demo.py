@@ -132,7 +132,7 @@ def stream(out: Path) -> tuple[list[dict], float]:
 
     cfg = out / "live.yaml"
     cfg.write_text(yaml.safe_dump({
-        "source": {"driver": "replay", "path": str(out / "robot"), "pace": "fast"},
+        "source": {"driver": "replay", "path": str(out / "robot"), "pace": "fast", "preload": True},
         "rig": str(out / "rig.yaml"), "target": "targets/robot-3boards.yaml",
         "publish": {"endpoint": ENDPOINT},
         "loop": {"latest_frame_wins": False, "stop_at_end": True},
@@ -176,7 +176,9 @@ def pose_summary(messages: list[dict], truth_file: Path) -> list[str]:
         pos.append(1000 * np.linalg.norm(np.array(m["pose"]["position_m"]) - fr["t_rig_robot_m"]))
         dq = Rotation.from_quat(m["pose"]["orientation_xyzw"]) * Rotation.from_matrix(fr["R_rig_robot"]).inv()
         rot.append(np.degrees(dq.magnitude()))
-    lines = [f"  {len(valid)} of {len(messages)} published poses valid"]
+    tracked = sum(m["quality"].get("detection") == "tracked" for m in messages)
+    lines = [f"  {len(valid)} of {len(messages)} published poses valid; {tracked} frames tracked, "
+             f"{len(messages) - tracked} searched in full"]
     reasons = sorted({m["reason"] for m in messages if not m["valid"]})
     if reasons:
         lines.append(f"  invalid because: {'; '.join(reasons[:3])}")
