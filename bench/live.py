@@ -45,6 +45,7 @@ import zmq  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import edgecal  # noqa: E402
+from edgecal.pose import PoseSettings  # noqa: E402
 from edgecal.stream import LiveLoop, load_live_config  # noqa: E402
 
 THRESHOLDS = {"fps": 30.0, "p99_ms": 33.0, "position_mm": 1.0, "rotation_deg": 0.1}
@@ -152,7 +153,8 @@ def pose_errors(messages: list[dict], truth: dict) -> dict:
     """Errors of the valid poses against the truth, and the covariance's consistency."""
     frames = truth["frames"]
     n = len(frames)
-    pos, rot, nees, errs, sig = [], [], [], [], []
+    pos, rot, nees, nees_res, errs, sig = [], [], [], [], [], []
+    noise2 = PoseSettings().corner_noise_px ** 2
     poses = [m for m in messages if m["type"] == "pose"]
     for m in poses:
         if not m["valid"]:
@@ -166,6 +168,12 @@ def pose_errors(messages: list[dict], truth: dict) -> dict:
         pos.append(1000 * np.linalg.norm(dt))
         rot.append(np.degrees(np.linalg.norm(dth)))
         nees.append(float(e @ np.linalg.solve(C, e)))
+        # The same covariance scaled by the fit's own residual instead (covariance_scale: residual): the
+        # default ("max") scale is max(residual sigma^2, corner_noise_px^2).
+        q = m["quality"]
+        n_res = 2 * (q["corners_left"] + q["corners_right"])
+        s2_res = q["rms_px"] ** 2 * n_res / max(n_res - 6, 1)
+        nees_res.append(nees[-1] * max(s2_res, noise2) / max(s2_res, 1e-12))
         errs.append(e)
         sig.append(np.sqrt(np.diag(C)))
     out = {"poses": len(poses), "valid": len(pos),
@@ -179,6 +187,7 @@ def pose_errors(messages: list[dict], truth: dict) -> dict:
                              "max": float(np.max(rot))},
             "reported_sigma_mm": float(np.median([1000 * np.linalg.norm(s[:3]) for s in sig])),
             "nees_mean": float(np.mean(nees)), "nees_median": float(np.median(nees)),
+            "nees_residual_scale_mean": float(np.mean(nees_res)), "nees_residual_scale_median": float(np.median(nees_res)),
             "rms_error_over_sigma": [round(float(v), 2) for v in ratio],
         })
     return out
@@ -300,7 +309,8 @@ def main() -> int:
               f"p95 {e['position_mm']['p95']:.3f} max {e['position_mm']['max']:.3f}; rotation median "
               f"{e['rotation_deg']['median']:.4f} deg p95 {e['rotation_deg']['p95']:.4f} max "
               f"{e['rotation_deg']['max']:.4f}; mean NEES {e['nees_mean']:.1f} (6 = consistent), median "
-              f"{e['nees_median']:.1f}; RMS error / sigma [x y z rx ry rz] {e['rms_error_over_sigma']}")
+              f"{e['nees_median']:.1f}; RMS error / sigma [x y z rx ry rz] {e['rms_error_over_sigma']}; with the "
+              f"residual scale: mean NEES {e['nees_residual_scale_mean']:.1f}, median {e['nees_residual_scale_median']:.1f}")
     print(f"per stereo frame, single thread, {d['frames']} frames: OpenCV SB {d['opencv_sb_ms']:.0f} ms, edgecal search "
           f"{d['edgecal_ms']:.1f} ms ({d['opencv_over_edgecal']:.0f}x faster), edgecal tracked "
           f"{d['edgecal_tracked_ms']:.1f} ms ({d['opencv_over_tracked']:.0f}x faster)")

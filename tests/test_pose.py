@@ -214,3 +214,31 @@ def test_single_corner_outliers_are_left_out_and_counted() -> None:
     # Without the rejection (a floor above the outliers) the same corners move the pose measurably.
     kept = estimate_pose(left, right, target, cams, PoseSettings(outlier_min_px=10.0))
     assert kept.outliers == 0 and kept.rms_px > 2 * pose.rms_px
+
+
+def test_boards_seen_edge_on_are_left_out() -> None:
+    """A board seen closer to edge-on than MIN_FACING_COS has biased corners: the pose leaves it out of
+    the cameras that see it so (exactly those) and the rest gives the exact pose."""
+    from edgecal.pose.predict import MIN_FACING_COS, camera_from_rig, facing_cos
+
+    theta = np.radians(78.0)      # the second board's normal 78 deg off the line of sight (cos 0.21)
+    target = Target("two", (
+        Board("face", 6, 5, 20.0, np.array([-60.0, 40.0, 0.0]), np.array([1.0, 0, 0]), np.array([0, -1.0, 0])),
+        Board("slant", 6, 5, 20.0, np.array([80.0, 40.0, 0.0]), np.array([np.cos(theta), 0, -np.sin(theta)]),
+              np.array([0, -1.0, 0])),
+    ))
+    cams = stereo_cams()
+    R, t = np.eye(3), np.array([0.0, 0.0, 0.8])
+    left, right = render_detections(target, cams, R, t)
+    expected = set()
+    for side, dets in (("left", left), ("right", right)):
+        R_c, t_c = camera_from_rig(cams, side, R, t)
+        for d in dets:
+            if abs(facing_cos(target.board(d.board), R_c, t_c)) < MIN_FACING_COS:
+                expected.add(f"{d.board} ({side})")
+                d.corners[:] += [0.3, -0.2]          # the detector's bias on slivers of squares
+    assert "slant (right)" in expected and not any(e.startswith("face") for e in expected)
+    pose = estimate_pose(left, right, target, cams)
+    assert pose.valid, pose.reason
+    assert set(pose.edge_on) == expected
+    assert np.abs(pose.t_m - t).max() < 1e-8

@@ -16,7 +16,8 @@ from scipy.spatial.transform import Rotation
 from edgecal.detection.tracking import MAX_MOTION_RESIDUAL_PX, track_boards
 from edgecal.detection.types import CornerPrediction
 from edgecal.pose import Pose, estimate_pose
-from edgecal.pose.predict import MAX_EXTRAPOLATION, extrapolate_pose, predict_corners
+from edgecal.pose.predict import (MAX_EXTRAPOLATION, MIN_FACING_COS, camera_from_rig, extrapolate_pose, facing_cos,
+                                  predict_corners)
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.tracker import BoardTracker, TrackingSettings, confirmed_fraction
 from live_fixtures import free_endpoint, render_robot, write_config
@@ -69,19 +70,24 @@ def test_extrapolation_is_exact_for_constant_velocity() -> None:
 def test_predicted_corners_match_the_rendered_truth(robot) -> None:
     _folder, truth, cfg = robot
     frame = truth["frames"][0]
+    R, t = pose_of(frame)
     for side in ("left", "right"):
-        preds = predict_corners(*pose_of(frame), cfg.cameras, side, cfg.target)
+        preds = {p.board.name: p for p in predict_corners(R, t, cfg.cameras, side, cfg.target)}
         seen = truth_corners(frame, side)
         assert preds, f"nothing predicted in the {side} image"
-        n = 0
-        for p in preds:
+        for p in preds.values():
             for (c, r), xy in zip(p.ids, p.xy):
                 key = (p.board.name, int(c), int(r))
                 if key in seen:
                     assert np.linalg.norm(xy - seen[key]) < 0.05, key
-                    n += 1
-        # Boards that face the camera are predicted; nearly all of the rendered corners are among them.
-        assert n >= 0.8 * len(seen)
+        # Every rendered board is predicted unless it is seen closer to edge-on than MIN_FACING_COS.
+        R_c, t_c = camera_from_rig(cfg.cameras, side, R, t)
+        for name in {k[0] for k in seen}:
+            facing = facing_cos(cfg.target.board(name), R_c, t_c)
+            assert (name in preds) == (facing >= MIN_FACING_COS), (side, name, facing)
+            if name in preds:
+                rendered = sum(k[0] == name for k in seen)
+                assert len(preds[name].ids) >= 0.9 * rendered
 
 
 def test_tracking_confirms_displaced_predictions_to_subpixel(robot) -> None:

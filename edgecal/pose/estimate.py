@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from edgecal.detection.types import Detection
+from edgecal.pose.predict import MIN_FACING_COS, camera_from_rig, facing_cos
 from edgecal.pose.refine import CameraView, pose_covariance, refine_pose
 from edgecal.pose.rigid import fit_rigid, is_degenerate
 from edgecal.pose.triangulate import triangulate_pixels
@@ -193,6 +194,8 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
     corner either camera saw, its covariance computed, and the quality bounds applied. When the RMS
     bound fails, the board (in one camera) that fits worst is taken out and the pose fitted again, up
     to ``max_rejected`` times: one misread board must not cost the frame. ``Pose.rejected`` names them.
+    Boards the pose shows closer to edge-on than MIN_FACING_COS in a camera are then left out of that
+    camera and the pose fitted again (``Pose.edge_on``), unless that leaves no valid pose.
     """
     tl, tr = corner_table(left, target), corner_table(right, target)
     pose = _estimate(tl, tr, target, cams, settings)
@@ -210,4 +213,28 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
         rejected.append(f"{board} ({side})")
         pose = _estimate(tl, tr, target, cams, settings)
     pose.rejected = tuple(rejected)
+    edge_on = edge_on_views(pose, cams, target, tl, tr)
+    if edge_on:
+        kept_l = {k: v for k, v in tl.items() if (k[0], "left") not in edge_on}
+        kept_r = {k: v for k, v in tr.items() if (k[0], "right") not in edge_on}
+        refit = _estimate(kept_l, kept_r, target, cams, settings)
+        # Only a valid pose replaces the first: the edge-on boards may be all there is.
+        if refit.valid:
+            refit.rejected = pose.rejected
+            refit.edge_on = tuple(f"{board} ({side})" for board, side in edge_on)
+            pose = refit
     return pose
+
+
+def edge_on_views(pose: Pose, cams: StereoCameras, target: Target, left: dict, right: dict) -> list[tuple[str, str]]:
+    """(board, side) of every board in the corner tables that ``pose`` shows closer to edge-on than
+    MIN_FACING_COS in that camera (none when the pose was not computed)."""
+    if not np.all(np.isfinite(pose.t_m)):
+        return []
+    out = []
+    for side, table in (("left", left), ("right", right)):
+        R_c, t_c = camera_from_rig(cams, side, pose.R, pose.t_m)
+        # |cos|: a board found in an image is seen from its printed side, whichever way its normal points.
+        out += [(b, side) for b in sorted({k[0] for k in table})
+                if abs(facing_cos(target.board(b), R_c, t_c)) < MIN_FACING_COS]
+    return out

@@ -88,6 +88,7 @@ class Pose:
     boards: tuple[str, ...] = ()
     rejected: tuple[str, ...] = ()        # "board (camera)" taken out of the fit as misfits
     outliers: int = 0                     # single corner observations left out of the fit
+    edge_on: tuple[str, ...] = ()         # "board (camera)" left out as seen too close to edge-on
 
     @property
     def quaternion_xyzw(self) -> np.ndarray:

@@ -53,6 +53,7 @@ def pose_message(pose: Pose, seq: int, stamp_ns: int, publish_ns: int) -> dict[s
             "boards": list(pose.boards),
             "rejected": list(pose.rejected),
             "outliers": int(pose.outliers),
+            "edge_on": list(pose.edge_on),
             "position_std_mm": _num(pose.position_std_mm, 4) if computed else None,
             "rotation_std_deg": _num(pose.rotation_std_deg, 5) if computed else None,
         },
