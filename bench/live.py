@@ -284,7 +284,7 @@ def main() -> int:
 
     r, f, s, d = results["realtime"], results["fast"], results["fast_search"], results["detection"]
     print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames, one pass, {results['cores']} cores "
-          f"(NUMBA_NUM_THREADS=1; left/right in two threads; replay {'preloaded' if results['preload'] else 'decoding PNGs'}); "
+          f"(NUMBA_NUM_THREADS=1; replay {'preloaded' if results['preload'] else 'decoding PNGs'}); "
           f"load average {results['load_average_before']:.1f} before, {results['load_average_after']:.1f} after")
     lat = r["latency"]
     print(f"real time (30 fps replay, latest-frame-wins): {r['fps']:.1f} fps processed, "

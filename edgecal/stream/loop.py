@@ -1,8 +1,8 @@
-"""The live loop: stereo source -> detect left and right in parallel -> pose -> publish.
+"""The live loop: stereo source -> track (or search) the boards in left and right -> pose -> publish.
 
-State lives here (the camera, the socket, the counters); the work per frame is the pure functions of
-edgecal.detection and edgecal.pose (the right image is detected in a second thread while the loop's
-own thread does the left one). The loop is steered from outside only through
+State lives here (the camera, the socket, the counters, the tracker); the work per frame is the pure
+functions of edgecal.detection and edgecal.pose (a full search does the right image in a second thread
+while the loop's own thread does the left one). The loop is steered from outside only through
 :meth:`LiveLoop.request_stop` and :meth:`LiveLoop.request_reload` (signal handlers call them), so a
 signal never interrupts a frame half-way; :meth:`LiveLoop.abort` is the deadline behind a stop request.
 """
@@ -327,10 +327,11 @@ class LiveLoop:
         expected = self.tracker.expected_pose(frame.stamp_ns)
         if expected is None:
             return None
-        assert self._pool is not None
-        right = self._pool.submit(self._track, frame.right.image, "right", expected)
+        # One thread for both images: verification is ~6 ms of mostly Python per image, and two threads
+        # contending for the GIL (each OpenCV call hands it over and waits to get it back) were slower
+        # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
         left_pred, left_det = self._track(frame.left.image, "left", expected)
-        right_pred, right_det = right.result()
+        right_pred, right_det = self._track(frame.right.image, "right", expected)
         if confirmed_fraction(left_pred + right_pred, left_det + right_det) < self.config.tracking.min_confirmed_fraction:
             return None
         pose = estimate_pose(left_det, right_det, self.config.target, self.config.cameras, self.config.pose)
