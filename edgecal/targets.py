@@ -65,6 +65,12 @@ class Board:
                 + (ids[:, 1:2] * s) * self.y_axis[None, :])
 
     @property
+    def centre_mm(self) -> np.ndarray:
+        """Target-frame centre of the inner-corner grid in mm."""
+        s = self.square_mm
+        return self.origin_mm + (0.5 * (self.cols - 1) * s) * self.x_axis + (0.5 * (self.rows - 1) * s) * self.y_axis
+
+    @property
     def normal(self) -> np.ndarray:
         """Unit normal x_axis × y_axis (right-handed board frame)."""
         return np.cross(self.x_axis, self.y_axis)

@@ -188,20 +188,19 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         results[k][1][idx[~follows]] = False
     # Boards with enough confirmed corners whose squares have the right colours...
     kept = []
-    for pr, (refined, good, quality) in zip(predictions, results):
+    for pr, sp, (refined, good, quality) in zip(predictions, spacing, results):
         if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(good)):
             continue
         if square_colours_match(pr.ids[good], refined[good], smooth, p.min_contrast):
-            kept.append((pr, pr.ids[good], refined[good], quality[good]))
+            kept.append((pr, pr.ids[good], refined[good], quality[good], float(np.median(sp))))
     # ... and no corners one square beyond their sides (all boards in one call; probed at half the square
     # size, a ring of 0.3 squares: beyond the outer corners lie the margin and, a third of a square
     # further, whatever the board is glued on - a full-size ring could see four sectors alternate there).
-    beyond = [beyond_border(ids, xy, pr.board.cols, pr.board.rows) for pr, ids, xy, _q in kept]
+    beyond = [beyond_border(ids, xy, pr.board.cols, pr.board.rows) for pr, ids, xy, _q, _s in kept]
     checks = _verify_boards(smooth, gx, gy, [b[0] for b in beyond],
-                            [np.full(len(b[0]), 0.5 * float(np.median(nearest_spacing(xy))))
-                             for b, (_pr, _ids, xy, _q) in zip(beyond, kept)], p, False)
+                            [np.full(len(b[0]), 0.5 * k[4]) for b, k in zip(beyond, kept)], p, False)
     found = []
-    for (pr, ids, xy, quality), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
+    for (pr, ids, xy, quality, _s), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
         if slipped_sides(corner, sides):
             continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))

@@ -60,7 +60,7 @@ def facing_cos(board: Board, R_c: np.ndarray, t_c: np.ndarray) -> float:
     """Cosine between ``board``'s normal and the line of sight to its centre in a camera at T_cam_robot =
     (R_c, t_c in metres): 1 seen face-on, 0 edge-on, negative from behind (the normal points into the
     body, away from a camera that sees the printed side; see configs/targets/)."""
-    centre = R_c @ (board.target_points_mm().mean(axis=0) / 1000.0) + t_c
+    centre = R_c @ (board.centre_mm / 1000.0) + t_c
     return float((R_c @ board.normal) @ centre / max(np.linalg.norm(centre), 1e-12))
 
 
