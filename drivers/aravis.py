@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import threading
 import time
+import traceback
 from typing import Any
 
 import cv2
@@ -42,6 +43,9 @@ _FORMATS: dict[str, tuple[type, int | None, int]] = {
 }
 
 _DRIFT_PPM = 20e-6
+
+# USB3 Vision ABRM register 0x0000 (GenCP version): readable on every U3V device, used to ask whether it is still there.
+_U3V_PROBE_REGISTER = 0x0000
 
 
 def load_aravis() -> Any:
@@ -114,6 +118,7 @@ class AravisSource(Source):
         self.uri = spec.uri
         self.settings = spec.settings
         self._camera: Any = None
+        self._device: Any = None   # the camera's ArvDevice, polled for a lost camera (see _control_lost)
         self._stream: Any = None
         self._lost = threading.Event()
         self._failed = False
@@ -164,7 +169,10 @@ class AravisSource(Source):
         try:
             self._configure(Aravis, GLib)
             self._start(Aravis, GLib)
-        except BaseException:
+        except BaseException as exc:
+            # The traceback's finished frames (_configure, _start) hold the camera in their locals (``cam``):
+            # cleared first, so close() releases the last reference instead of whoever collects the exception.
+            traceback.clear_frames(exc.__traceback__)
             self.close()
             raise
 
@@ -234,12 +242,40 @@ class AravisSource(Source):
             payload = cam.get_payload()
             for _ in range(self.settings.buffers):
                 self._stream.push_buffer(Aravis.Buffer.new_allocate(payload))
-            device = cam.get_device()
-            # Emitted from Aravis's heartbeat thread when the camera stops answering.
-            device.connect("control-lost", lambda *_: self._lost.set())
+            # A lost camera is polled from the reading thread (_control_lost), never signalled: a handler on
+            # the device's "control-lost" signal runs on Aravis's heartbeat (GigE) or libusb event (USB3) thread,
+            # and the emission holds a reference to the device until the handler returns; a Python handler
+            # waits there for the GIL, and if close() drops the other references meanwhile, the device is
+            # finalised on that thread, which then joins itself (GLib-ERROR "Resource deadlock avoided").
+            # With no handler connected GLib skips the emission entirely.
+            self._device = cam.get_device()
             cam.start_acquisition()
         except GLib.Error as exc:
             raise DeviceError(f"{self.uri}: cannot start streaming ({exc.message})") from None
+
+    def _control_lost(self, probe: bool) -> bool:
+        """Whether the device says the camera is gone (False when it cannot tell); never raises.
+
+        GigE Vision: the heartbeat thread clears the device's controller flag when the camera stops
+        answering or another host has taken it over (when it would emit "control-lost"); reading the flag
+        costs nothing. USB3 Vision: a register read fails at once with NOT_CONNECTED after the camera was
+        unplugged; it is a bus transaction, so only done when ``probe`` (no frame in the last slice).
+        """
+        device, camera = self._device, self._camera
+        if device is None or camera is None:
+            return False
+        try:
+            if camera.is_gv_device():
+                return not device.is_controller()
+            if probe and camera.is_uv_device():
+                from gi.repository import Aravis, GLib
+                try:
+                    device.read_register(_U3V_PROBE_REGISTER)
+                except GLib.Error as exc:
+                    return exc.matches(Aravis.device_error_quark(), Aravis.DeviceError.NOT_CONNECTED)
+        except Exception:  # asking must not turn into an error of its own
+            pass
+        return False
 
     def set_exposure_us(self, exposure_us: float) -> float:
         """Change the exposure while streaming; returns the value the camera applied."""
@@ -278,8 +314,10 @@ class AravisSource(Source):
         deadline = time.monotonic() + timeout
         if self.settings.trigger == "software":
             self._camera.software_trigger()
+        idle = False   # the last slice brought no buffer
         while True:
-            if self._lost.is_set():
+            if self._lost.is_set() or self._control_lost(probe=idle):
+                self._lost.set()
                 self._failed = True
                 raise DeviceError(f"{self.uri}: lost contact with the camera (unplugged or powered off?)")
             remaining = deadline - time.monotonic()
@@ -289,7 +327,8 @@ class AravisSource(Source):
                                   "unplugged, or waiting for a trigger?)")
             # Wait in slices so that a lost camera is reported promptly.
             buf = self._stream.timeout_pop_buffer(int(min(remaining, 0.1) * 1e6))
-            if buf is None:
+            idle = buf is None
+            if idle:
                 continue
             recv = time.monotonic_ns()
             try:
@@ -319,13 +358,17 @@ class AravisSource(Source):
         thread: close() waits for it up to a second (a healthy camera is released by then, so it can
         be reopened at once), not at all after a known failure, and leaves the rest in the background
         (``release_thread``).
+
+        No Python code runs on Aravis's own threads (no signal handlers, no stream callback), so the
+        last references are always dropped on a thread of ours: the releasing thread, which joins the
+        stream's receive thread and the device's heartbeat/event thread.
         """
         if self._camera is None:
             return
-        # The references live only in this list, which the releasing thread empties.
-        held = [self._stream, self._camera]
-        self._camera = self._stream = None
-        failed = self._failed or self._lost.is_set()
+        failed = self._failed or self._lost.is_set() or self._control_lost(probe=True)
+        # The references live only in this list, which the releasing thread empties (stream first).
+        held = [self._camera, self._device, self._stream]
+        self._camera = self._device = self._stream = None
         self.release_thread = threading.Thread(target=_stop_and_release, args=(held, not failed),
                                                name=f"release {self.uri}", daemon=True)
         self.release_thread.start()
@@ -334,13 +377,15 @@ class AravisSource(Source):
 
 
 def _stop_and_release(objects: list[Any], stop: bool) -> None:
-    """Stop acquisition (if asked) and drop the last references to Aravis objects.
+    """Stop acquisition (if asked) and drop the last references to ``[camera, device, stream]``.
 
-    Their finalizers talk to the device (release the stream channel and the control privilege).
+    In this order: the stream (its finalizer joins the receive thread and releases the stream channel),
+    then the device and the camera (the device's finalizer joins its heartbeat/event thread and
+    releases the control privilege). Their finalizers talk to the device.
     """
     if stop:
         try:
-            objects[1].stop_acquisition()
+            objects[0].stop_acquisition()
         except Exception:  # the camera may have gone in the meantime; releasing is what matters
             pass
     while objects:
