@@ -1,17 +1,19 @@
 #!/usr/bin/env python3
 """Live-loop benchmark: a rendered robot sequence replayed through the real loop and a real subscriber.
 
-    .venv/bin/python bench/live.py [--frames 300] [--out out/bench/live] [--json FILE] [--decode]
+    .venv/bin/python bench/live.py [--frames 300] [--repeat 3] [--out out/bench/live] [--json FILE] [--decode]
 
 The sequence (1280x800, 30 fps, the robot carrying configs/targets/robot-3boards.yaml at about 1 m,
 clean renders; 300 frames = 10 s by default) is rendered once into --out and reused. The rig file holds
 the renderer's true cameras, so the numbers are the loop's, not a calibration's. The replay is preloaded
 (decoded once, handed out as a camera hands out raw frames; --decode decodes each PNG as it is replayed,
-~14 ms of CPU per 1280x800 image here). Three runs, each through `LiveLoop` in this process with a
+~14 ms of CPU per 1280x800 image here). The runs, each through `LiveLoop` in this process with a
 ZeroMQ SUB socket on localhost, one pass over the sequence:
 
-* real time: replay paced at 30 fps, latest-frame-wins (as a camera would deliver): capture->publish
-  latency median/p99, achieved fps, dropped frames, CPU use;
+* real time (--repeat times; medians over the runs): replay paced at 30 fps, latest-frame-wins (as a
+  camera would deliver): capture->publish latency median/p99 (over all poses, and after acquisition:
+  the frames searched in full at the start and the one that waited behind them left out), achieved
+  fps, dropped frames, CPU use;
 * as fast as possible: replay not paced, every frame processed in order: sustained fps, CPU use;
 * the same with tracking off (every frame searched in full: the detector alone), for the ratio.
 
@@ -203,7 +205,7 @@ def latency(messages: list[dict]) -> dict:
     tracked = [i for i, m in enumerate(poses) if m["quality"].get("detection") == "tracked"]
     steady = lat[tracked[1]:] if len(tracked) > 1 else lat[:0]
     out = {"median_ms": float(np.median(lat)), "p99_ms": float(np.percentile(lat, 99)), "n": int(lat.size),
-           "acquisition_frames": tracked[1] if len(tracked) > 1 else len(poses),
+           "first_ms": float(lat[0]), "acquisition_frames": tracked[1] if len(tracked) > 1 else len(poses),
            "acquisition_max_ms": float(lat[:tracked[1]].max()) if len(tracked) > 1 else float(lat.max())}
     if steady.size:
         out.update({"steady_median_ms": float(np.median(steady)), "steady_p99_ms": float(np.percentile(steady, 99)),
@@ -269,6 +271,7 @@ def main() -> int:
     ap.add_argument("--json", default=None, help="write the results here as JSON")
     ap.add_argument("--endpoint", default="tcp://127.0.0.1:5591")
     ap.add_argument("--decode", action="store_true", help="decode each PNG as it is replayed (no preload)")
+    ap.add_argument("--repeat", type=int, default=3, help="real-time runs (medians are reported; default 3)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -276,8 +279,13 @@ def main() -> int:
     truth = ensure_sequence(folder, args.frames)
     results: dict = {"frames": len(truth["frames"]), "size": "1280x800", "cores": os.cpu_count(),
                      "preload": not args.decode, "load_average_before": os.getloadavg()[0]}
-    runs = {"realtime": (True, True), "fast": (False, True), "fast_search": (False, False)}
-    for key, (realtime, tracking) in runs.items():
+    # The real-time pass is repeated: on a shared machine its tail latency varies from run to run.
+    realtime_runs = [summarise(run_loop(folder, out, True, args.endpoint, True, not args.decode), truth)
+                     for _ in range(args.repeat)]
+    results["realtime_runs"] = realtime_runs
+    by_p99 = sorted(realtime_runs, key=lambda x: x["latency"].get("p99_ms", 1e9))
+    results["realtime"] = by_p99[(len(by_p99) - 1) // 2]          # the run with the median p99 is shown
+    for key, (realtime, tracking) in {"fast": (False, True), "fast_search": (False, False)}.items():
         results[key] = summarise(run_loop(folder, out, realtime, args.endpoint, tracking, not args.decode), truth)
     results["detection"] = detection_times(folder, truth, args.reference_frames)
     results["load_average_after"] = os.getloadavg()[0]
@@ -295,6 +303,14 @@ def main() -> int:
           f"up to {lat.get('acquisition_max_ms', float('nan')):.0f} ms; after it ({lat.get('steady_n', 0)} poses): "
           f"median {lat.get('steady_median_ms', float('nan')):.1f} ms, p99 {lat.get('steady_p99_ms', float('nan')):.1f} ms, "
           f"max {lat.get('steady_max_ms', float('nan')):.1f} ms")
+    if len(realtime_runs) > 1:
+        def spread(key: str) -> str:
+            v = [x["latency"].get(key, float("nan")) for x in realtime_runs]
+            return f"median {np.median(v):.1f} (runs {', '.join(f'{u:.1f}' for u in v)})"
+        print(f"  over {len(realtime_runs)} real-time runs: fps median "
+              f"{np.median([x['fps'] for x in realtime_runs]):.1f}; latency median {spread('median_ms')} ms; "
+              f"p99 over all poses {spread('p99_ms')} ms; p99 after acquisition {spread('steady_p99_ms')} ms; "
+              f"first pose {spread('first_ms')} ms")
     for name, x in (("as fast as possible", f), ("same, tracking off", s)):
         print(f"{name}: {x['fps']:.1f} fps sustained over {x['frames']} frames ({x['tracked_frames']} tracked), "
               f"CPU {x['cpu_percent_of_one_core']:.0f}% of one core ({x['cpu_ms_per_frame']:.1f} CPU ms per frame)")
@@ -315,10 +331,12 @@ def main() -> int:
           f"{d['edgecal_ms']:.1f} ms ({d['opencv_over_edgecal']:.0f}x faster), edgecal tracked "
           f"{d['edgecal_tracked_ms']:.1f} ms ({d['opencv_over_tracked']:.0f}x faster)")
     e = r["errors"]
+    p99_all = float(np.median([x["latency"].get("p99_ms", 1e9) for x in realtime_runs]))
+    p99_steady = float(np.median([x["latency"].get("steady_p99_ms", 1e9) for x in realtime_runs]))
     print("targets (real-time run): " + ", ".join([
         f"30 fps {'met' if f['fps'] >= THRESHOLDS['fps'] and r['fps'] >= 0.97 * THRESHOLDS['fps'] else 'NOT met'}",
-        f"p99 < 33 ms {'met' if lat.get('p99_ms', 1e9) < THRESHOLDS['p99_ms'] else 'NOT met'} over all poses, "
-        f"{'met' if lat.get('steady_p99_ms', 1e9) < THRESHOLDS['p99_ms'] else 'NOT met'} after acquisition",
+        f"p99 < 33 ms {'met' if p99_all < THRESHOLDS['p99_ms'] else 'NOT met'} over all poses, "
+        f"{'met' if p99_steady < THRESHOLDS['p99_ms'] else 'NOT met'} after acquisition (median of the runs)",
         f"position < 1 mm {'met' if e.get('position_mm', {}).get('max', 1e9) < 1 else 'NOT met'} (max)",
         f"rotation < 0.1 deg {'met' if e.get('rotation_deg', {}).get('max', 1e9) < 0.1 else 'NOT met'} (max)"]))
     if args.json:

@@ -16,12 +16,14 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
+import cv2
 import numpy as np
 
 import edgecal
 from edgecal.drivers.base import Source, StereoFrame, StereoSource
 from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
 from edgecal.detection.tracking import track_boards
+from edgecal.detection.types import CornerPrediction
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, EdgecalError, InputError
 from edgecal.pose import Pose, estimate_pose
@@ -66,6 +68,20 @@ def check_image(image: object, size: tuple[int, int], side: str) -> str | None:
     if w and h and (image.shape[1], image.shape[0]) != (w, h):
         return f"{side} image is {image.shape[1]}x{image.shape[0]}, the rig was calibrated at {w}x{h}"
     return None
+
+
+def warm_up_image(size: tuple[int, int], cols: int, rows: int) -> np.ndarray:
+    """A grey image of ``size`` (width, height) with a slightly blurred chessboard of ``cols`` x ``rows``
+    inner corners in its middle: something for every stage of the detector to work on."""
+    w, h = size
+    square = int(max(8, min(40, w // (cols + 3), h // (rows + 3))))
+    image = np.full((h, w), 200, np.uint8)
+    x0, y0 = (w - (cols + 1) * square) // 2, (h - (rows + 1) * square) // 2
+    for r in range(rows + 1):
+        for c in range(cols + 1):
+            if (r + c) % 2 == 0:
+                image[y0 + r * square:y0 + (r + 1) * square, x0 + c * square:x0 + (c + 1) * square] = 40
+    return cv2.GaussianBlur(image, (5, 5), 1.0)
 
 
 class LiveLoop:
@@ -172,13 +188,17 @@ class LiveLoop:
             log.info("stopped after %d frames%s", self.stats.frames, took)
 
     def warm_up(self) -> None:
-        """Run the detector once on a blank image so numba's compilation (or cache load) is not paid by
-        the first camera frame, whose latency would otherwise be seconds; then freeze what is loaded out of
-        the garbage collector's full collections."""
+        """Run the whole per-frame path once - a full search, the verification of predicted corners - on a
+        drawn chessboard at the cameras' size, so that numba's cache loads, OpenCV's first calls and the
+        first large buffers are not paid by the first camera frame; then freeze what is loaded out of the
+        garbage collector's full collections."""
         w, h = self.config.cameras.image_size
         t0 = time.monotonic()
-        edgecal.detect(np.full((min(h, 240) or 240, min(w, 320) or 320), 128, np.uint8), self.config.target,
-                       self.config.detector)
+        board = self.config.target.boards[0]
+        image = warm_up_image((w or 640, h or 480), board.cols, board.rows)
+        for det in edgecal.detect(image, self.config.target, self.config.detector):
+            moved = [CornerPrediction(self.config.target.board(det.board), det.ids, det.corners + 0.7)]
+            track_boards(image, moved, self.config.detector)
         # Everything loaded so far (numba, scipy, OpenCV bindings: hundreds of thousands of objects) lives as
         # long as the process: frozen out of the collector's view, a full collection no longer walks them all,
         # which otherwise stalls one frame in a few hundred by ~60 ms.
