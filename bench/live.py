@@ -306,8 +306,8 @@ def main() -> int:
     if len(realtime_runs) > 1:
         def spread(key: str) -> str:
             v = [x["latency"].get(key, float("nan")) for x in realtime_runs]
-            return f"median {np.median(v):.1f} (runs {', '.join(f'{u:.1f}' for u in v)})"
-        print(f"  over {len(realtime_runs)} real-time runs: fps median "
+            return f"{np.median(v):.1f} (runs {', '.join(f'{u:.1f}' for u in v)})"
+        print(f"  medians of {len(realtime_runs)} real-time runs: fps "
               f"{np.median([x['fps'] for x in realtime_runs]):.1f}; latency median {spread('median_ms')} ms; "
               f"p99 over all poses {spread('p99_ms')} ms; p99 after acquisition {spread('steady_p99_ms')} ms; "
               f"first pose {spread('first_ms')} ms")
