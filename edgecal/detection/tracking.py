@@ -92,6 +92,8 @@ def beyond_border(ids: np.ndarray, xy: np.ndarray, cols: int, rows: int, per_sid
     outermost confirmed corners of up to ``per_side`` rows or columns spread along the side (a labelling
     one square off shifts whole sides, so a few points tell): (K, 2) points and (K,) side numbers 0..3
     (col -1, col ``cols``, row -1, row ``rows``). On the real board these points are its margin."""
+    if cols < 2 or rows < 2:
+        return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
     grid = np.full((rows, cols, 2), np.nan)
     grid[ids[:, 1], ids[:, 0]] = xy
     sides = [(grid[:, 0], grid[:, 1]), (grid[:, -1], grid[:, -2]), (grid[0, :], grid[1, :]), (grid[-1, :], grid[-2, :])]
@@ -121,8 +123,8 @@ def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: l
                    spacing: list[np.ndarray], p: DetectorParams, pinned: bool
                    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """verify_predictions over the points of several boards in one call; (refined, good, quality) per board."""
-    if not points:
-        return []
+    if not sum(len(x) for x in points):
+        return [(np.zeros((0, 2)), np.zeros(0, dtype=bool), np.zeros(0)) for _ in points]
     cat = np.ascontiguousarray(np.concatenate(points))
     refined, good, quality = verify_predictions(smooth, gx, gy, cat, np.concatenate(spacing), p,
                                                 np.full(len(cat), pinned))
@@ -137,8 +139,9 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     Only the image region around the predictions is processed. A corner is confirmed when the probe sees a
     chessboard corner near its prediction and it follows the board's motion (board_motion). A board is
     kept when at least MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed,
-    its squares' colours match its ids and there are no corners one square beyond its sides; its Detection holds the confirmed corners (``complete`` when they are all of
-    the board). Boards not confirmed are left out: the caller decides whether to search the image.
+    its squares' colours match its ids and there are no corners one square beyond its sides; its Detection
+    holds the confirmed corners (``complete`` when they are all of the board). Boards not confirmed are
+    left out: the caller decides whether to search the image.
     """
     p = params or DEFAULT_PARAMS
     predictions = [pr for pr in predictions if len(pr.ids) >= 4]
