@@ -20,10 +20,10 @@ import cv2
 import numpy as np
 
 import edgecal
-from edgecal.drivers.base import Source, StereoFrame, StereoSource
-from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
 from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
+from edgecal.drivers.base import Source, StereoFrame, StereoSource
+from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, EdgecalError, InputError
 from edgecal.pose import Pose, estimate_pose
@@ -339,7 +339,12 @@ class LiveLoop:
         """The corners the ``expected`` pose predicts in one image, and the boards confirmed there (tracking;
         see edgecal.stream.tracker)."""
         predicted = self.tracker.predict_side(expected, side)
-        return predicted, (track_boards(image, predicted, self.config.detector) if predicted else [])
+        if not predicted:
+            return predicted, []
+        try:
+            return predicted, track_boards(image, predicted, self.config.detector)
+        except InputError:               # an image the detector cannot read: the search reports it
+            return predicted, []
 
     def _tracked_pose(self, frame: StereoFrame) -> Pose | None:
         """The pose from verifying the tracker's predicted corners in both images, or None when there is
@@ -352,7 +357,8 @@ class LiveLoop:
         # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
         left_pred, left_det = self._track(frame.left.image, "left", expected)
         right_pred, right_det = self._track(frame.right.image, "right", expected)
-        if confirmed_fraction(left_pred + right_pred, left_det + right_det) < self.config.tracking.min_confirmed_fraction:
+        confirmed = confirmed_fraction(left_pred + right_pred, left_det + right_det)
+        if confirmed < self.config.tracking.min_confirmed_fraction:
             return None
         pose = estimate_pose(left_det, right_det, self.config.target, self.config.cameras, self.config.pose)
         # A misfit board or an invalid pose may be a tracking failure: the full search decides.
