@@ -4,7 +4,8 @@
     .venv/bin/python bench/live.py [--frames 300] [--repeat 3] [--out out/bench/live] [--json FILE] [--decode]
 
 The sequence (1280x800, 30 fps, the robot carrying configs/targets/robot-3boards.yaml at about 1 m,
-clean renders; 300 frames = 10 s by default) is rendered once into --out and reused. The rig file holds
+clean renders unless --photometric / --exposure-ms say otherwise; 300 frames = 10 s by default) is
+rendered once into --out and reused. The rig file holds
 the renderer's true cameras, so the numbers are the loop's, not a calibration's. The replay is preloaded
 (decoded once, handed out as a camera hands out raw frames; --decode decodes each PNG as it is replayed,
 ~14 ms of CPU per 1280x800 image here). The runs, each through `LiveLoop` in this process with a
@@ -53,8 +54,11 @@ from edgecal.stream import LiveLoop, load_live_config  # noqa: E402
 THRESHOLDS = {"fps": 30.0, "p99_ms": 33.0, "position_mm": 1.0, "rotation_deg": 0.1}
 
 
-def ensure_sequence(folder: Path, n_frames: int, seed: int = 7) -> dict:
-    """Render the robot sequence (and its true rig.yaml) unless it is already there with enough frames."""
+def ensure_sequence(folder: Path, n_frames: int, seed: int = 7, photometric: str = "clean",
+                    exposure_ms: float = 0.0) -> dict:
+    """Render the robot sequence (and its true rig.yaml) unless it is already there with enough frames.
+
+    ``photometric`` is edgecal.synth's level (clean, normal, hard); ``exposure_ms`` > 0 blurs the motion."""
     truth_file = folder / "truth.json"
     if truth_file.is_file():
         truth = json.loads(truth_file.read_text())
@@ -63,7 +67,8 @@ def ensure_sequence(folder: Path, n_frames: int, seed: int = 7) -> dict:
     from edgecal.synth import scenes, writer
     t0 = time.perf_counter()
     rig = scenes.robot_rig(seed, (1280, 800))
-    frames = scenes.robot_sequence(seed, n_frames, size=(1280, 800), photometric="clean")
+    frames = scenes.robot_sequence(seed, n_frames, size=(1280, 800), photometric=photometric,
+                                   exposure_ms=exposure_ms)
     writer.write_robot_sequence(folder, frames, rig, scenes.robot_target(), 30.0, force=True)
     truth = json.loads(truth_file.read_text())
     write_rig(truth["rig"], folder / "rig.yaml")
@@ -272,12 +277,17 @@ def main() -> int:
     ap.add_argument("--endpoint", default="tcp://127.0.0.1:5591")
     ap.add_argument("--decode", action="store_true", help="decode each PNG as it is replayed (no preload)")
     ap.add_argument("--repeat", type=int, default=3, help="real-time runs (medians are reported; default 3)")
+    ap.add_argument("--photometric", default="clean", choices=("clean", "normal", "hard"),
+                    help="rendering conditions (edgecal.synth levels; default clean, the issue's targets)")
+    ap.add_argument("--exposure-ms", type=float, default=0.0, help="motion blur: exposure time of each frame")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    folder = out / "robot"
-    truth = ensure_sequence(folder, args.frames)
+    clean = args.photometric == "clean" and not args.exposure_ms
+    folder = out / ("robot" if clean else f"robot-{args.photometric}-{args.exposure_ms:g}ms")
+    truth = ensure_sequence(folder, args.frames, photometric=args.photometric, exposure_ms=args.exposure_ms)
     results: dict = {"frames": len(truth["frames"]), "size": "1280x800", "cores": os.cpu_count(),
+                     "photometric": args.photometric, "exposure_ms": args.exposure_ms,
                      "preload": not args.decode, "load_average_before": os.getloadavg()[0]}
     # The real-time pass is repeated: on a shared machine its tail latency varies from run to run.
     realtime_runs = [summarise(run_loop(folder, out, True, args.endpoint, True, not args.decode), truth)
@@ -291,7 +301,8 @@ def main() -> int:
     results["load_average_after"] = os.getloadavg()[0]
 
     r, f, s, d = results["realtime"], results["fast"], results["fast_search"], results["detection"]
-    print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames, one pass, {results['cores']} cores "
+    print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames ({args.photometric}, exposure "
+          f"{args.exposure_ms:g} ms), one pass, {results['cores']} cores "
           f"(NUMBA_NUM_THREADS=1; replay {'preloaded' if results['preload'] else 'decoding PNGs'}); "
           f"load average {results['load_average_before']:.1f} before, {results['load_average_after']:.1f} after")
     lat = r["latency"]
