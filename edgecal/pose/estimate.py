@@ -131,16 +131,19 @@ def corner_outliers(residuals: np.ndarray, sigmas: float, min_px: float) -> np.n
     return norms > threshold
 
 
-def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings: PoseSettings) -> Pose:
+def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings: PoseSettings,
+              start_pose: Pose | None = None) -> Pose:
     """One fit over the corner tables of the left and right images (see estimate_pose).
 
+    The refinement starts from ``start_pose`` when given (its mode is kept), else from initial_pose.
     After the refinement, single corners that reproject far worse than the rest (corner_outliers) are
     left out and the pose is refined again from where it is, a few rounds at most.
     """
     if not tl and not tr:
         return Pose.invalid("no board detected", n_left=0, n_right=0, n_both=0)
     vl, vr = _views(cams, target, tl, tr)
-    start = initial_pose(cams, target, tl, tr, vl, vr, settings)
+    start = (initial_pose(cams, target, tl, tr, vl, vr, settings) if start_pose is None
+             else (start_pose.R, start_pose.t_m, start_pose.mode))
     if start is None:
         return Pose.invalid(f"too few corners for a pose ({len(tl)} left, {len(tr)} right)", n_left=len(tl),
                             n_right=len(tr), n_both=len(set(tl) & set(tr)))
@@ -169,20 +172,8 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings:
     return check_quality(pose, settings)
 
 
-def board_rms_px(pose: Pose, cams: StereoCameras, target: Target, table: dict, side: str) -> dict[str, float]:
-    """Reprojection RMS (px) of each board in one camera's corner table under ``pose``."""
-    out: dict[str, float] = {}
-    if side == "left":
-        K, d, R, t = cams.camera_matrix_left, cams.dist_coeffs_left, pose.R, pose.t_m
-    else:
-        K, d = cams.camera_matrix_right, cams.dist_coeffs_right
-        R, t = cams.R @ pose.R, cams.R @ pose.t_m + np.ravel(cams.T)
-    for board in {k[0] for k in table}:
-        keys = [k for k in table if k[0] == board]
-        px, _ = cv2.projectPoints(robot_points_m(target, keys), cv2.Rodrigues(R)[0], t, K, d)
-        err = px.reshape(-1, 2) - np.array([table[k] for k in keys])
-        out[board] = float(np.sqrt(np.mean(err ** 2)))
-    return out
+def _without(table: dict, board: str) -> dict:
+    return {k: v for k, v in table.items() if k[0] != board}
 
 
 def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoCameras,
@@ -191,33 +182,41 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
 
     Corners seen by both cameras are triangulated and fitted rigidly for a start; with fewer than four
     shared corners the camera that saw more is used alone (PnP). The pose is then refined over every
-    corner either camera saw, its covariance computed, and the quality bounds applied. When the RMS
-    bound fails, the board (in one camera) that fits worst is taken out and the pose fitted again, up
-    to ``max_rejected`` times: one misread board must not cost the frame. ``Pose.rejected`` names them.
-    Boards the pose shows closer to edge-on than MIN_FACING_COS in a camera are then left out of that
-    camera and the pose fitted again (``Pose.edge_on``), unless that leaves no valid pose.
+    corner either camera saw, its covariance computed, and the quality bounds applied.
+
+    When the RMS bound fails, one board in one camera is probably not what its name says (a grid the
+    detector misread or misnamed). Each board view is left out in turn and the pose fitted without it; the
+    best of those fits is kept - a valid one with the most corners, else the lowest RMS - up to
+    ``max_rejected`` times (``Pose.rejected`` names them). Leaving out the view that fits worst under the
+    contaminated fit would be cheaper, but a wrong board pulls the fit towards itself and a good one then
+    looks worst. Finally, boards a valid pose shows closer to edge-on than MIN_FACING_COS in a camera are
+    left out of that camera and the pose refined again from where it is (``Pose.edge_on``).
     """
     tl, tr = corner_table(left, target), corner_table(right, target)
     pose = _estimate(tl, tr, target, cams, settings)
     rejected: list[str] = []
     while (not pose.valid and np.isfinite(pose.rms_px) and pose.rms_px > settings.bounds.max_rms_px
            and len(rejected) < max_rejected):
-        groups = [(rms, side, board) for side, table in (("left", tl), ("right", tr))
-                  for board, rms in board_rms_px(pose, cams, target, table, side).items()]
-        if len(groups) < 2:
+        views = sorted({(k[0], "left") for k in tl} | {(k[0], "right") for k in tr})
+        if len(views) < 2:
             break
-        _, side, board = max(groups)
-        table = tl if side == "left" else tr
-        kept = {k: v for k, v in table.items() if k[0] != board}
-        tl, tr = (kept, tr) if side == "left" else (tl, kept)
+        trials = []
+        for board, side in views:
+            kl, kr = (_without(tl, board), tr) if side == "left" else (tl, _without(tr, board))
+            trial = _estimate(kl, kr, target, cams, settings)
+            if np.isfinite(trial.rms_px):
+                trials.append(((trial.valid, trial.n_corners if trial.valid else 0, -trial.rms_px),
+                               trial, board, side, kl, kr))
+        if not trials:
+            break
+        _key, pose, board, side, tl, tr = max(trials, key=lambda x: x[0])
         rejected.append(f"{board} ({side})")
-        pose = _estimate(tl, tr, target, cams, settings)
     pose.rejected = tuple(rejected)
-    edge_on = edge_on_views(pose, cams, target, tl, tr)
+    edge_on = edge_on_views(pose, cams, target, tl, tr) if pose.valid else []
     if edge_on:
         kept_l = {k: v for k, v in tl.items() if (k[0], "left") not in edge_on}
         kept_r = {k: v for k, v in tr.items() if (k[0], "right") not in edge_on}
-        refit = _estimate(kept_l, kept_r, target, cams, settings)
+        refit = _estimate(kept_l, kept_r, target, cams, settings, start_pose=pose)
         # Only a valid pose replaces the first: the edge-on boards may be all there is.
         if refit.valid:
             refit.rejected = pose.rejected
