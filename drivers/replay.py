@@ -122,8 +122,19 @@ def preload_images(files: Sequence[Path], where: Path | str, max_mb: float, grou
     return out
 
 
-def _preloaded(entry: np.ndarray | Unreadable) -> np.ndarray:
-    """The preloaded array, or the file's InputError raised anew (as a per-frame decode would)."""
+def _preload_for(spec: SourceSpec, files: list[Path], group: int = 1) -> list[np.ndarray | Unreadable] | None:
+    """``files`` decoded (preload_images) when ``spec`` asks for a preload, else None."""
+    if not spec.settings.preload:
+        return None
+    return preload_images(files, Path(spec.target).expanduser(), spec.settings.preload_max_mb, group)
+
+
+def _frame_image(images: list[np.ndarray | Unreadable] | None, index: int, file: Path) -> np.ndarray:
+    """Frame ``index``'s image: the preloaded array (a file that did not decode raises its InputError
+    anew, as a per-frame decode would), or ``file`` decoded now when nothing was preloaded."""
+    if images is None:
+        return read_image_file(file)
+    entry = images[index]
     if isinstance(entry, Unreadable):
         raise InputError(entry.message)
     return entry
@@ -222,10 +233,8 @@ class ReplaySource(Source):
         else:
             stamps = [it.stamp_ns for it in self.items]
             period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else int(1e9 / DEFAULT_FPS)
-            if self.spec.settings.preload and self._images is None:
-                files: list[Path] = [it.file for it in self.items]  # type: ignore[misc]
-                self._images = preload_images(files, Path(self.spec.target).expanduser(),
-                                              self.spec.settings.preload_max_mb)
+            if self._images is None:
+                self._images = _preload_for(self.spec, [it.file for it in self.items])  # type: ignore[misc]
             self._seq = _Sequence(len(self.items), period, self.spec.settings.loop)
             self._span_ns = (stamps[-1] - stamps[0] + period) if stamps else 0
 
@@ -257,10 +266,7 @@ class ReplaySource(Source):
         if k is None:
             return None
         item = self.items[k]
-        if self._images is not None:
-            image = _preloaded(self._images[k])
-        else:
-            image = read_image_file(item.file)  # type: ignore[arg-type]
+        image = _frame_image(self._images, k, item.file)  # type: ignore[arg-type]
         shift = self._seq.passes * self._span_ns
         stamp = item.stamp_ns + shift
         self._pacer.wait(stamp)
@@ -299,10 +305,9 @@ class StereoReplaySource(StereoSource):
 
     def open(self) -> None:
         """Rewind; with ``preload``, decode every image now."""
-        if self.spec.settings.preload and self._images is None:
-            files: list[Path] = [it.file for pair in self.pairs for it in pair]  # type: ignore[misc]
-            self._images = preload_images(files, Path(self.spec.target).expanduser(),
-                                          self.spec.settings.preload_max_mb, group=2)
+        if self._images is None:
+            self._images = _preload_for(self.spec, [it.file for pair in self.pairs for it in pair],  # type: ignore[misc]
+                                        group=2)
         stamps = [min(a.stamp_ns, b.stamp_ns) for a, b in self.pairs]
         period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else int(1e9 / DEFAULT_FPS)
         self._seq = _Sequence(len(self.pairs), period, self.spec.settings.loop)
@@ -319,10 +324,7 @@ class StereoReplaySource(StereoSource):
         seq_shift = self._seq.passes * len(self.pairs)
         frames = []
         for side, item in enumerate(self.pairs[k]):
-            if self._images is not None:
-                frames.append((_preloaded(self._images[2 * k + side]), item))
-            else:
-                frames.append((read_image_file(item.file), item))  # type: ignore[arg-type]
+            frames.append((_frame_image(self._images, 2 * k + side, item.file), item))  # type: ignore[arg-type]
         self._pacer.wait(min(it.stamp_ns for _, it in frames) + shift)
         now = time.monotonic_ns()
         left, right = (Frame(img, it.stamp_ns + shift, now, it.seq + seq_shift, it.camera_id, it.exposure_us,

@@ -5,7 +5,6 @@ Everything runs on a rendered robot sequence (edgecal.synth) whose true poses an
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2

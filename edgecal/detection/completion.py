@@ -16,7 +16,7 @@ import numpy as np
 
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M_SIGN_FRAC, probe_candidates,
-                                     probe_quality)
+                                     probe_quality, probe_radii)
 from edgecal.detection.subpixel import refine_corners
 
 
@@ -165,8 +165,7 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     refined = preds.copy()
     if inside.any():
         refined[inside] = refine_corners(smooth, preds[inside], spacing[inside])
-    radii = np.clip(params.probe_radius_per_spacing * spacing, params.probe_radius_min_px,
-                    params.probe_radius_max_px)
+    radii = probe_radii(spacing, params)
     ok, _dirs, meas = probe_candidates(
         gx, gy, smooth, np.ascontiguousarray(refined), np.ascontiguousarray(radii), params.probe_angles,
         params.probe_inner_radius_px, EDGE_ACROSS_RAY, math.radians(params.angle_diff_max_deg),

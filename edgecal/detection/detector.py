@@ -23,7 +23,7 @@ from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, ring_prefilter
+from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
 from edgecal.detection.subpixel import nearest_spacing, refine_corners
 from edgecal.detection.types import Detection, DetectionDebug
 from edgecal.images import as_grey
@@ -216,8 +216,7 @@ def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[
     pts = refine_corners(smooth, pts, spacing)
     pts = pts[_dedupe(pts, np.arange(len(pts)))]
     spacing = nearest_spacing(pts)
-    radii = np.clip(p.probe_radius_per_spacing * spacing, p.probe_radius_min_px, p.probe_radius_max_px)
-    ok, dirs, meas = _probe(smooth, gx, gy, pts, radii, p)
+    ok, dirs, meas = _probe(smooth, gx, gy, pts, probe_radii(spacing, p), p)
     pts, dirs, meas, spacing = pts[ok], dirs[ok], meas[ok], spacing[ok]
     debug = DetectionDebug(cands, pts, dirs, spacing)
     if len(pts) < 4:
@@ -280,9 +279,8 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
 
 def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
-    spacing = nearest_spacing(xy)
-    radii = np.clip(p.probe_radius_per_spacing * spacing, p.probe_radius_min_px, p.probe_radius_max_px)
-    _ok, _dirs, meas = _probe(level.smooth, level.gx, level.gy, xy, radii, p, max(16, p.probe_angles // 2))
+    _ok, _dirs, meas = _probe(level.smooth, level.gx, level.gy, xy, probe_radii(nearest_spacing(xy), p), p,
+                              max(16, p.probe_angles // 2))
     return probe_quality(meas, p)
 
 

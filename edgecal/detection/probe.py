@@ -15,7 +15,6 @@ and the across-component is ~0, so the four border peaks stand out far more for 
 from __future__ import annotations
 
 import math
-
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -346,6 +345,13 @@ def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_con
                 keep[i] = True
                 break
     return keep
+
+
+def probe_radii(spacing: np.ndarray, params: "DetectorParams") -> np.ndarray:
+    """Probe radius for each local square size: ``probe_radius_per_spacing`` x spacing, clamped to
+    [probe_radius_min_px, probe_radius_max_px]."""
+    return np.clip(params.probe_radius_per_spacing * np.asarray(spacing, dtype=np.float64),
+                   params.probe_radius_min_px, params.probe_radius_max_px)
 
 
 def probe_quality(measures: np.ndarray, params: "DetectorParams") -> np.ndarray:

@@ -28,6 +28,7 @@ import numpy as np
 from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
 from edgecal.detection.completion import verify_predictions
 from edgecal.detection.params import DetectorParams
+from edgecal.detection.probe import probe_radii
 from edgecal.detection.subpixel import nearest_spacing, subpixel_window
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.images import as_grey
@@ -62,6 +63,13 @@ def board_motion(predicted: np.ndarray, found: np.ndarray, max_residual_px: floa
     return M, residual <= bound
 
 
+def _dense_grid(ids: np.ndarray, xy: np.ndarray, lo: np.ndarray, cols: int, rows: int) -> np.ndarray:
+    """(rows, cols, 2) pixel array holding ``xy`` at (col, row) = ids - lo, NaN where no corner is."""
+    grid = np.full((rows, cols, 2), np.nan)
+    grid[ids[:, 1] - lo[1], ids[:, 0] - lo[0]] = xy
+    return grid
+
+
 def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, min_contrast: float) -> bool:
     """Whether the squares framed by confirmed corners have the colours their ids imply.
 
@@ -76,8 +84,7 @@ def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, mi
         return False
     lo = ids.min(axis=0)
     span = ids.max(axis=0) - lo + 1
-    grid = np.full((span[1], span[0], 2), np.nan)
-    grid[ids[:, 1] - lo[1], ids[:, 0] - lo[0]] = xy
+    grid = _dense_grid(ids, xy, lo, span[0], span[1])
     centres = 0.25 * (grid[:-1, :-1] + grid[:-1, 1:] + grid[1:, :-1] + grid[1:, 1:])
     rows, cols = np.nonzero(np.isfinite(centres).all(axis=2))
     h, w = smooth.shape
@@ -106,8 +113,7 @@ def beyond_border(ids: np.ndarray, xy: np.ndarray, cols: int, rows: int, per_sid
     (col -1, col ``cols``, row -1, row ``rows``). On the real board these points are its margin."""
     if cols < 2 or rows < 2:
         return np.zeros((0, 2)), np.zeros(0, dtype=np.int64)
-    grid = np.full((rows, cols, 2), np.nan)
-    grid[ids[:, 1], ids[:, 0]] = xy
+    grid = _dense_grid(ids, xy, np.zeros(2, dtype=np.int64), cols, rows)
     sides = [(grid[:, 0], grid[:, 1]), (grid[:, -1], grid[:, -2]), (grid[0, :], grid[1, :]), (grid[-1, :], grid[-2, :])]
     points, labels = [], []
     for k, (edge, inner) in enumerate(sides):
@@ -129,6 +135,15 @@ def slipped_sides(corner: np.ndarray, sides: np.ndarray) -> bool:
         if corner[on_side].sum() >= max(2, 0.5 * on_side.sum()):
             return True
     return False
+
+
+def _keep_following(predicted: np.ndarray, refined: np.ndarray, good: np.ndarray) -> np.ndarray | None:
+    """Un-confirm (in ``good``, in place) the confirmed corners that do not follow the board's motion;
+    returns that motion (board_motion's affine map, None when there is none)."""
+    idx = np.nonzero(good)[0]
+    M, follows = board_motion(predicted[idx], refined[idx])
+    good[idx[~follows]] = False
+    return M
 
 
 def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: list[np.ndarray],
@@ -164,9 +179,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     spacing = [nearest_spacing(pr.xy) for pr in predictions]
     all_xy = np.concatenate([pr.xy for pr in predictions])
     all_spacing = np.concatenate(spacing)
-    reach = max(float(subpixel_window(all_spacing).max()),
-                float(np.clip(p.probe_radius_per_spacing * all_spacing, p.probe_radius_min_px,
-                              p.probe_radius_max_px).max()))
+    reach = max(float(subpixel_window(all_spacing).max()), float(probe_radii(all_spacing, p).max()))
     # The crop also holds one square beyond every board (the border check looks there).
     margin = int(np.ceil(reach + all_spacing.max())) + 4
     x0, y0 = (max(0, int(np.floor(v)) - margin) for v in all_xy.min(axis=0))
@@ -183,12 +196,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     local = [np.ascontiguousarray(pr.xy - offset) for pr in predictions]
     # Pass 1: every prediction as it is, all boards in one call.
     results = [list(r) for r in _verify_boards(smooth, gx, gy, local, spacing, p, True)]
-    motions: list[np.ndarray | None] = []
-    for pred, res in zip(local, results):
-        idx = np.nonzero(res[1])[0]
-        M, follows = board_motion(pred[idx], res[0][idx])
-        res[1][idx[~follows]] = False
-        motions.append(M)
+    motions = [_keep_following(pred, res[0], res[1]) for pred, res in zip(local, results)]
     # Pass 2: predictions pass 1 missed (more than a quarter square off: the first frames have no velocity
     # yet, a slanted board's squares are thin), moved by their board's motion fitted to the confirmed ones.
     retry = [k for k, (M, res) in enumerate(zip(motions, results)) if M is not None and not res[1].all()]
@@ -198,9 +206,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     for k, m, again in zip(retry, missed, again_all):
         for part in range(3):
             results[k][part][m] = again[part]
-        idx = np.nonzero(results[k][1])[0]
-        _M, follows = board_motion(local[k][idx], results[k][0][idx])
-        results[k][1][idx[~follows]] = False
+        _keep_following(local[k], results[k][0], results[k][1])
     # Boards with enough confirmed corners whose squares have the right colours...
     kept = []
     for pr, sp, (refined, good, quality) in zip(predictions, spacing, results):

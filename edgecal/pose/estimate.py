@@ -172,8 +172,9 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings:
     return check_quality(pose, settings)
 
 
-def _without(table: dict, board: str) -> dict:
-    return {k: v for k, v in table.items() if k[0] != board}
+def _without(table: dict, boards: set[str]) -> dict:
+    """The corner table less every corner of ``boards``."""
+    return {k: v for k, v in table.items() if k[0] not in boards}
 
 
 def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoCameras,
@@ -202,7 +203,7 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
             break
         trials = []
         for board, side in views:
-            kl, kr = (_without(tl, board), tr) if side == "left" else (tl, _without(tr, board))
+            kl, kr = (_without(tl, {board}), tr) if side == "left" else (tl, _without(tr, {board}))
             trial = _estimate(kl, kr, target, cams, settings)
             if np.isfinite(trial.rms_px):
                 trials.append(((trial.valid, trial.n_corners if trial.valid else 0, -trial.rms_px),
@@ -214,8 +215,8 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
     pose.rejected = tuple(rejected)
     edge_on = edge_on_views(pose, cams, target, tl, tr) if pose.valid else []
     if edge_on:
-        kept_l = {k: v for k, v in tl.items() if (k[0], "left") not in edge_on}
-        kept_r = {k: v for k, v in tr.items() if (k[0], "right") not in edge_on}
+        kept_l = _without(tl, {board for board, side in edge_on if side == "left"})
+        kept_r = _without(tr, {board for board, side in edge_on if side == "right"})
         refit = _estimate(kept_l, kept_r, target, cams, settings, start_pose=pose)
         # Only a valid pose replaces the first: the edge-on boards may be all there is.
         if refit.valid:

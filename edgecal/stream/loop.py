@@ -335,28 +335,27 @@ class LiveLoop:
         except InputError as exc:            # e.g. an array the detector cannot read as an image
             return [], str(exc)
 
-    def _track(self, image: object, side: str, expected: tuple[np.ndarray, np.ndarray]) -> tuple[list, list]:
-        """The corners the ``expected`` pose predicts in one image, and the boards confirmed there (tracking;
-        see edgecal.stream.tracker)."""
-        predicted = self.tracker.predict_side(expected, side)
+    def _track(self, image: object, predicted: list[CornerPrediction]) -> list:
+        """The predicted boards confirmed in one image (tracking; see edgecal.stream.tracker)."""
         if not predicted:
-            return predicted, []
+            return []
         try:
-            return predicted, track_boards(image, predicted, self.config.detector)
+            return track_boards(image, predicted, self.config.detector)
         except InputError:               # an image the detector cannot read: the search reports it
-            return predicted, []
+            return []
 
     def _tracked_pose(self, frame: StereoFrame) -> Pose | None:
         """The pose from verifying the tracker's predicted corners in both images, or None when there is
         no prediction or the result is in doubt (then the frame is searched in full)."""
-        expected = self.tracker.expected_pose(frame.stamp_ns)
-        if expected is None:
+        predicted = self.tracker.predict(frame.stamp_ns)
+        if predicted is None:
             return None
+        left_pred, right_pred = predicted
         # One thread for both images: verification is ~6 ms of mostly Python per image, and two threads
         # contending for the GIL (each OpenCV call hands it over and waits to get it back) were slower
         # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
-        left_pred, left_det = self._track(frame.left.image, "left", expected)
-        right_pred, right_det = self._track(frame.right.image, "right", expected)
+        left_det = self._track(frame.left.image, left_pred)
+        right_det = self._track(frame.right.image, right_pred)
         confirmed = confirmed_fraction(left_pred + right_pred, left_det + right_det)
         if confirmed < self.config.tracking.min_confirmed_fraction:
             return None

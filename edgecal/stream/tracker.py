@@ -60,7 +60,7 @@ class BoardTracker:
         """Forget the motion (after an invalid pose, a reopened camera or a reload)."""
         self._poses.clear()
 
-    def expected_pose(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
+    def _expected_pose(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray] | None:
         """T_rig_robot (R, t in metres) expected at ``stamp_ns``, or None when there is no recent pose to
         predict from (the frame must then be searched)."""
         if not self.settings.enabled or not self._poses:
@@ -73,17 +73,13 @@ class BoardTracker:
             return extrapolate_pose(R_prev, t_prev, stamp_prev, R_last, t_last, stamp_last, stamp_ns)
         return R_last, t_last
 
-    def predict_side(self, expected: tuple[np.ndarray, np.ndarray], side: str) -> list[CornerPrediction]:
-        """The corners expected in the ``side`` ("left" or "right") image under the ``expected`` pose."""
-        return predict_corners(expected[0], expected[1], self.cameras, side, self.target)
-
     def predict(self, stamp_ns: int) -> tuple[list[CornerPrediction], list[CornerPrediction]] | None:
         """The corners expected in the left and right images of the frame captured at ``stamp_ns``, or None
         when there is no recent pose or no board is expected in either image."""
-        expected = self.expected_pose(stamp_ns)
+        expected = self._expected_pose(stamp_ns)
         if expected is None:
             return None
-        left, right = self.predict_side(expected, "left"), self.predict_side(expected, "right")
+        left, right = (predict_corners(*expected, self.cameras, side, self.target) for side in ("left", "right"))
         return (left, right) if left or right else None
 
     def update(self, pose: Pose, stamp_ns: int) -> None:
