@@ -25,7 +25,7 @@ import numpy as np
 
 from edgecal.drivers.base import Frame, Source, StereoFrame
 from edgecal.errors import InputError
-from edgecal.fileio import png_bytes, write_atomic
+from edgecal.fileio import check_outputs, png_bytes, sync_paths, write_atomic
 
 MANIFEST = "manifest.json"
 FORMAT = "edgecal-recording"
@@ -50,7 +50,9 @@ class Recorder:
     """Writes frames (or stereo pairs) into a recording folder; ``close()`` writes the final manifest.
 
     The manifest is also rewritten every ``flush_every`` frames, so a recording cut short by a crash or
-    a power loss is still replayable up to the last flush.
+    a power loss is still replayable up to the last flush. Frames are written atomically but fsynced in a
+    batch before each manifest (one fsync per frame would stall the capture on a slow card): the manifest
+    never lists a frame that is not on the disk.
     """
 
     def __init__(self, out_dir: str | Path, source: dict[str, Any], force: bool = False,
@@ -59,10 +61,12 @@ class Recorder:
         self.source = source
         self.flush_every = flush_every
         self.entries: list[dict[str, Any]] = []
+        self._unsynced: list[Path] = []  # frames written since the last manifest
         self.layout: str | None = None
         self.started_utc = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
         if self.out.exists() and not self.out.is_dir():
             raise InputError(f"{self.out}: exists and is not a folder (choose another --out)")
+        check_outputs([self.out / MANIFEST], force=True, create_folders=True)  # before any frame is grabbed
         if self.out.is_dir() and any(self.out.iterdir()):
             if not force:
                 raise InputError(f"{self.out}: folder is not empty (choose another --out, or --force to replace "
@@ -77,7 +81,8 @@ class Recorder:
     def _write_image(self, sub: str, index: int, frame: Frame) -> str:
         rel = f"{sub}/{index:06d}.png"
         (self.out / sub).mkdir(exist_ok=True)
-        write_atomic(self.out / rel, encode_png(frame.image, f"{self.out / rel}"))
+        write_atomic(self.out / rel, encode_png(frame.image, f"{self.out / rel}"), durable=False)
+        self._unsynced.append(self.out / rel)
         return rel
 
     def add(self, item: Frame | StereoFrame) -> None:
@@ -98,7 +103,9 @@ class Recorder:
             self.write_manifest()
 
     def write_manifest(self) -> None:
-        """Write manifest.json atomically with every frame added so far."""
+        """Write manifest.json atomically with every frame added so far (those frames reach the disk first)."""
+        sync_paths(self._unsynced)
+        self._unsynced = []
         manifest = {"format": FORMAT, "version": VERSION, "layout": self.layout or "mono",
                     "started_utc": self.started_utc, "source": self.source, "frames": self.entries}
         write_atomic(self.out / MANIFEST, json.dumps(manifest, indent=1).encode("utf-8"))

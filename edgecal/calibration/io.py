@@ -6,8 +6,9 @@ dist_coeffs_right, R, T (metres; X_right = R X_left + T), and their standard dev
 std of R's rotation vector; T_std_m), plus the rectification R1 R2 P1 P2 Q and quality figures.
 A single camera writes camera_matrix, dist_coeffs and intrinsics_std instead.
 
-Every write goes to a temporary file in the destination folder and is moved into place with
-os.replace, so a reader never sees half a file; an existing file is replaced only with ``force``.
+rig.yaml and its camera_info files are written as one set (edgecal.fileio.write_atomic_set: every
+temporary, then every rename), so a reader or a rerun never finds half a file or half a set; an existing
+file is replaced only with ``force``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import yaml
 from edgecal.calibration.refine import INTRINSIC_NAMES
 from edgecal.calibration.types import Calibration, Camera
 from edgecal.errors import ConfigError, InputError
-from edgecal.fileio import write_via_temp
+from edgecal.fileio import check_outputs, write_atomic_set
 
 
 def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
@@ -33,23 +34,14 @@ def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
     return [p.with_name(f"{stem}.{n}.camera_info.yaml" if n else f"{stem}.camera_info.yaml") for n in names]
 
 
-def check_writable(paths: list[Path], force: bool) -> None:
-    """Raise InputError if a destination folder is missing, or a file exists and ``force`` is off."""
-    for p in paths:
-        if not p.parent.is_dir():
-            raise InputError(f"{p}: the folder {p.parent} does not exist (create it first)")
-        if p.exists() and not force:
-            raise InputError(f"{p}: the file exists; pass --force to replace it")
-
-
 def _std_row(std: dict[str, float]) -> np.ndarray:
     return np.array([[std.get(n, np.nan) for n in INTRINSIC_NAMES]], dtype=np.float64)
 
 
-def _write_rig(cal: Calibration, tmp: str) -> None:
-    fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE)
-    if not fs.isOpened():
-        raise InputError(f"{tmp}: cannot write here")
+def rig_yaml(cal: Calibration) -> str:
+    """The rig.yaml text (OpenCV FileStorage YAML) of a calibration."""
+    # written to memory: the file itself is written by write_atomic_set with the others of its set
+    fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
     fs.writeComment("edgecal calibration; T in metres, X_right = R X_left + T (docs/conventions.md)")
     fs.startWriteStruct("image_size", cv2.FileNode_SEQ | cv2.FileNode_FLOW)
     fs.write("", int(cal.image_size[0]))
@@ -83,7 +75,7 @@ def _write_rig(cal: Calibration, tmp: str) -> None:
         if cal.reconstruction is not None:
             fs.write("reconstruction_error_mean_mm", float(cal.reconstruction.mean_mm))
             fs.write("reconstruction_error_std_mm", float(cal.reconstruction.std_mm))
-    fs.release()
+    return fs.releaseAndGetString()
 
 
 def _matrix(m: np.ndarray) -> dict:
@@ -115,18 +107,17 @@ def camera_info(cal: Calibration, index: int) -> dict:
 
 
 def write_calibration(cal: Calibration, path: str | Path, force: bool = False) -> list[Path]:
-    """Write rig.yaml and one camera_info YAML per camera, atomically; return the paths written.
+    """Write rig.yaml and one camera_info YAML per camera as one set; return the paths written.
 
-    Nothing is written if any destination exists and ``force`` is off.
+    Nothing is written if any destination exists and ``force`` is off, or its folder is not writable.
     """
     rig = Path(path)
     infos = camera_info_paths(rig, cal.is_stereo)
-    check_writable([rig, *infos], force)
-    # the .yaml suffix matters: cv2.FileStorage picks its format from the file name
-    write_via_temp(rig, lambda tmp: _write_rig(cal, tmp), suffix=".tmp.yaml")
+    check_outputs([rig, *infos], force)
+    files = {rig: rig_yaml(cal).encode("utf-8")}
     for i, p in enumerate(infos):
-        text = yaml.safe_dump(camera_info(cal, i), sort_keys=False, default_flow_style=None)
-        write_via_temp(p, lambda tmp, text=text: Path(tmp).write_text(text, encoding="utf-8"), suffix=".tmp.yaml")
+        files[p] = yaml.safe_dump(camera_info(cal, i), sort_keys=False, default_flow_style=None).encode("utf-8")
+    write_atomic_set(files)
     return [rig, *infos]
 
 

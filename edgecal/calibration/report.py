@@ -7,9 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from edgecal.calibration.io import check_writable
 from edgecal.calibration.types import Calibration
-from edgecal.fileio import png_bytes, write_atomic
+from edgecal.fileio import check_outputs, png_bytes, write_atomic_set
 
 VECTOR_GAIN = 20.0  # residual vectors are drawn this many times longer than they are
 
@@ -138,7 +137,6 @@ def write_report(cal: Calibration, images: list[list[np.ndarray]], folder: str |
     ``images[camera][view]`` are the calibrated images (grey or BGR). Returns the paths written.
     """
     out = Path(folder)
-    out.mkdir(parents=True, exist_ok=True)
     multi = max(len(v) for v in cal.corners) > 1
     plan: list[tuple[Path, np.ndarray | str]] = []
     for c, name in enumerate(cal.camera_names):
@@ -153,7 +151,7 @@ def write_report(cal: Calibration, images: list[list[np.ndarray]], folder: str |
     plan.append((out / "per_board_error.png",
                  bar_chart(list(per_board), list(per_board.values()), "reprojection RMS per camera/board (px)", "px")))
     plan.append((out / "summary.txt", format_summary(cal) + "\n"))
-    check_writable([p for p, _ in plan], force)
-    for p, content in plan:
-        write_atomic(p, content.encode("utf-8") if isinstance(content, str) else png_bytes(content))
+    check_outputs([p for p, _ in plan], force, create_folders=True)
+    write_atomic_set({p: content.encode("utf-8") if isinstance(content, str) else png_bytes(content)
+                      for p, content in plan})
     return [p for p, _ in plan]

@@ -15,7 +15,7 @@ import numpy as np
 
 from edgecal.calibration.acceptance import acceptance_problems
 from edgecal.calibration.assign import assign, assign_stereo, symmetry_warnings
-from edgecal.calibration.io import camera_info_paths, check_writable, write_calibration
+from edgecal.calibration.io import camera_info_paths, write_calibration
 from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.planar import calibrate_planar
 from edgecal.calibration.refine import DISTORTION_MODELS
@@ -24,6 +24,7 @@ from edgecal.calibration.settings import load_calibration_settings
 from edgecal.calibration.stereo import calibrate_box_stereo
 from edgecal.calibration.types import Calibration, CornerSet
 from edgecal.errors import CalibrationRejected, ConfigError, EdgecalError, InputError
+from edgecal.fileio import check_outputs
 from edgecal.images import expand_image_args, load_grey
 from edgecal.targets import Target, load_target, parse_board_spec
 
@@ -128,8 +129,10 @@ def run(args: argparse.Namespace) -> int:
     left_paths = expand_image_args(args.left)
     right_paths = expand_image_args(args.right) if args.right else None
     out = Path(args.out)
-    # Refuse to clobber before any work is done.
-    check_writable([out, *camera_info_paths(out, right_paths is not None)], args.force)
+    # Refuse to clobber, or to work for a folder that cannot be written, before any work is done.
+    check_outputs([out, *camera_info_paths(out, right_paths is not None)], args.force)
+    if args.report:
+        check_outputs([Path(args.report) / "summary.txt"], args.force, create_folders=True)
     left = _load_images(left_paths)
     right = _load_images(right_paths) if right_paths else None
     cal = calibrate_images(target, left, right, left_paths, right_paths, settings)

@@ -20,12 +20,12 @@ import threading
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
 from edgecal.errors import EdgecalError, InputError
+from edgecal.fileio import check_outputs, png_bytes, write_atomic
 
 ENDPOINT = "tcp://127.0.0.1:5561"     # not the default 5560: a running `edgecal run` must not clash
 
@@ -61,10 +61,9 @@ def render_box_pair(seed: int, out: Path) -> dict:
     R_left, _ = look_at(eye, centre, up=np.array([0.0, 0.0, -1.0]))
     t_left = -R_left @ (eye - R_left[0] * np.linalg.norm(rig.T_right_left_mm) / 2.0)
     R_right, t_right = stereo_right_pose(R_left, t_left, rig.R_right_left, rig.T_right_left_mm)
-    (out / "box").mkdir(parents=True, exist_ok=True)
     for side, cam, R, t in (("left", rig.left, R_left, t_left), ("right", rig.right, R_right, t_right)):
         view = render_view(cam, panels, R, t, background=0.45, rng=seed, target_frame="box", target_name=box.name)
-        cv2.imwrite(str(out / "box" / f"{side}.png"), view.image)
+        write_atomic(out / "box" / f"{side}.png", png_bytes(view.image))
     return rig.as_json()
 
 
@@ -94,7 +93,7 @@ def calibrate(out: Path, truth: dict) -> list[str]:
         code = main(["calibrate", "--target", str(packaged_config_path("targets/box-100mm.yaml")),
                      "--left", str(out / "box" / "left.png"), "--right", str(out / "box" / "right.png"),
                      "--out", str(out / "rig.yaml"), "--report", str(out / "calibration"), "--force"])
-    (out / "calibrate.txt").write_text(log.getvalue())
+    write_atomic(out / "calibrate.txt", log.getvalue().encode("utf-8"))
     if code != 0:
         last = log.getvalue().strip().splitlines()[-1:] or ["(no output)"]
         raise EdgecalError(f"demo: calibration failed ({last[0]}); details in {out / 'calibrate.txt'}")
@@ -131,12 +130,12 @@ def stream(out: Path) -> tuple[list[dict], float]:
     from edgecal.stream import LiveLoop, load_live_config
 
     cfg = out / "live.yaml"
-    cfg.write_text(yaml.safe_dump({
+    write_atomic(cfg, yaml.safe_dump({
         "source": {"driver": "replay", "path": str(out / "robot"), "pace": "fast", "preload": True},
         "rig": str(out / "rig.yaml"), "target": "targets/robot-3boards.yaml",
         "publish": {"endpoint": ENDPOINT},
         "loop": {"latest_frame_wins": False, "stop_at_end": True},
-    }, sort_keys=False))
+    }, sort_keys=False).encode("utf-8"))
     loop = LiveLoop(load_live_config(cfg))
     ctx = zmq.Context()
     sub = ctx.socket(zmq.SUB)
@@ -197,6 +196,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--frames {args.frames}: must be at least 1")
     if (out / "rig.yaml").exists() and not args.force:
         raise InputError(f"{out}: holds an earlier demo (rig.yaml); use --force to replace it or another --out")
+    check_outputs([out / "rig.yaml"], force=True, create_folders=True)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     print(f"1. calibration box rendered for the robot's stereo rig -> {out / 'box'}", flush=True)

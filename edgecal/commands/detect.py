@@ -11,6 +11,7 @@ from pathlib import Path
 from edgecal.detection.detector import detect_debug
 from edgecal.detection.params import DEFAULT_PARAMS_FILE_HINT, DetectorParams, load_params
 from edgecal.errors import EdgecalError, InputError
+from edgecal.fileio import check_outputs
 from edgecal.images import expand_image_args, load_grey
 from edgecal.targets import Target, load_target, parse_board_spec
 
@@ -46,6 +47,7 @@ def run(args: argparse.Namespace) -> int:
     draw_dir = Path(args.draw) if args.draw else None
     if draw_dir is not None:
         from edgecal.detection.draw import write_overlay  # only with --draw: drawing is not on the hot path
+        check_outputs([draw_dir / "overlay.png"], force=True, create_folders=True)  # before the first image
         draw_dir.mkdir(parents=True, exist_ok=True)
     failed = 0
     for path in expand_image_args(args.images):
