@@ -24,6 +24,12 @@ def _build(spec: SourceSpec) -> Source:
         assert spec.left is not None and spec.right is not None
         return PairedStereoSource(open_source(spec.left), open_source(spec.right),
                                   int(spec.settings.max_skew_ms * 1e6), spec.settings.timeout_s, spec.uri)
+    if spec.driver == "mcap":
+        from edgecal.drivers.mcap_source import open_mcap
+        return open_mcap(spec)
+    if spec.driver == "rosbag":
+        from edgecal.drivers.rosbag_source import open_rosbag
+        return open_rosbag(spec)
     if spec.driver == "aravis":
         from edgecal.drivers.aravis import AravisSource
         return AravisSource(spec)

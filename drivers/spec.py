@@ -13,6 +13,9 @@ URI forms (options after ``?`` are the same fields as in a config section)::
     depthai:  /  depthai:MXID                     first / named OAK device (a stereo source)
     stereo:LEFT_URI,RIGHT_URI                     two mono sources paired by timestamp
     stereo:[LEFT_URI,RIGHT_URI]?max_skew_ms=2     ... with options of the pairing itself
+    mcap:FILE.mcap?topic=/cam/image_raw           an image topic of an MCAP file (ROS 2 messages)
+    mcap:FILE.mcap?left=/left/image&right=/right/image    two topics paired by header stamp (stereo)
+    rosbag:BAG?topic=...  /  rosbag:BAG?left=...&right=...  the same over a ROS 1 .bag or a ROS 2 bag folder
 
 A config section (e.g. ``source:`` in a YAML file)::
 
@@ -42,10 +45,13 @@ import yaml
 from edgecal.config import ConfigReader
 from edgecal.errors import ConfigError
 
-DRIVERS = ("replay", "v4l2", "aravis", "dc1394", "depthai", "stereo")
+DRIVERS = ("replay", "v4l2", "aravis", "dc1394", "depthai", "stereo", "mcap", "rosbag")
+# Drivers that read a robot log (an MCAP file or a ROS bag): image topics by name.
+LOG_DRIVERS = ("mcap", "rosbag")
 
 # The field of a config section that names the device/file, per driver.
-TARGET_FIELD = {"replay": "path", "v4l2": "device", "aravis": "name", "dc1394": "guid", "depthai": "mxid"}
+TARGET_FIELD = {"replay": "path", "v4l2": "device", "aravis": "name", "dc1394": "guid", "depthai": "mxid",
+                "mcap": "path", "rosbag": "path"}
 
 # Fields every driver accepts.
 COMMON_FIELDS = ("timeout_s", "camera_id", "latest_only")
@@ -60,6 +66,8 @@ DRIVER_FIELDS: dict[str, tuple[str, ...]] = {
                "buffers"),
     "depthai": ("width", "height", "fps", "exposure_us", "iso", "max_skew_ms"),
     "stereo": ("max_skew_ms",),
+    "mcap": ("topic", "left", "right", "pace", "loop", "max_skew_ms"),
+    "rosbag": ("topic", "left", "right", "pace", "loop", "max_skew_ms"),
 }
 
 PIXEL_FORMATS: dict[str, tuple[str, ...]] = {
@@ -94,11 +102,14 @@ class SourceSettings:
     packet_size: int | None = None
     iso_speed: int | None = None
     buffers: int = 4
-    pace: str = "recorded"          # replay: "recorded" (real time) or "fast"
+    pace: str = "recorded"          # replay, mcap, rosbag: "recorded" (real time; "realtime" says the same) or "fast"
     loop: bool = False
     preload: bool = False           # replay: decode every image once at open() (frames as a camera gives them)
     preload_max_mb: float = 2048.0  # replay: refuse a preload whose decoded frames would need more (MiB)
     max_skew_ms: float = 5.0
+    topic: str | None = None        # mcap, rosbag: the image topic of a mono source
+    left: str | None = None         # mcap, rosbag: the left and right image topics of a stereo source
+    right: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Only the fields that differ from the defaults (for manifests and messages)."""
@@ -170,7 +181,8 @@ def _read_settings(r: ConfigReader, driver: str, skip: tuple[str, ...] = ()) -> 
     if r.has("buffers"):
         kw["buffers"] = r.integer("buffers", minimum=2, maximum=64)
     if r.has("pace"):
-        kw["pace"] = r.string("pace", choices=("recorded", "fast"))
+        pace = r.string("pace", choices=("recorded", "fast", "realtime"))
+        kw["pace"] = "recorded" if pace == "realtime" else pace
     if r.has("loop"):
         kw["loop"] = r.boolean("loop")
     if r.has("preload"):
@@ -179,7 +191,24 @@ def _read_settings(r: ConfigReader, driver: str, skip: tuple[str, ...] = ()) -> 
         kw["preload_max_mb"] = r.number("preload_max_mb", positive=True)
     if r.has("max_skew_ms"):
         kw["max_skew_ms"] = r.number("max_skew_ms", minimum=0, maximum=10000)
+    if driver in LOG_DRIVERS:
+        for key in ("topic", "left", "right"):
+            if r.has(key):
+                kw[key] = r.string(key)
     return SourceSettings(**kw)
+
+
+def _check_log_topics(r: ConfigReader, driver: str, settings: SourceSettings) -> None:
+    """A log source names either one topic (mono) or a left and a right one (stereo)."""
+    example = f"{driver}:FILE?topic=/camera/image_raw or {driver}:FILE?left=/left/image_raw&right=/right/image_raw"
+    kw = {"topic": settings.topic, "left": settings.left, "right": settings.right}
+    if kw.get("topic") and (kw.get("left") or kw.get("right")):
+        raise r.fail("topic", f"cannot be given together with left/right (one topic is mono, left+right stereo: "
+                              f"{example})")
+    if not kw.get("topic") and not (kw.get("left") and kw.get("right")):
+        which = "right" if kw.get("left") else "left" if kw.get("right") else "topic"
+        raise r.fail(which, f"is missing: name the image topic(s), e.g. {example}; "
+                            "`edgecal sources FILE` lists them")
 
 
 def _parse_options(query: str, what: str) -> dict[str, Any]:
@@ -205,6 +234,14 @@ def _split_pair(body: str, uri: str) -> tuple[str, str]:
 
 def parse_uri(uri: str) -> SourceSpec:
     """Parse a source URI (see the module docstring) into a validated SourceSpec."""
+    spec = _parse_uri(uri)
+    if spec.driver in LOG_DRIVERS:
+        _check_log_topics(ConfigReader({}, f"source URI {uri!r}"), spec.driver, spec.settings)
+    return spec
+
+
+def _parse_uri(uri: str) -> SourceSpec:
+    """parse_uri without the completeness check of a log source's topics (a config section may add them)."""
     if not isinstance(uri, str) or ":" not in uri:
         raise ConfigError(f"source URI {uri!r}: expected DRIVER:TARGET with DRIVER one of {', '.join(DRIVERS)} "
                           "(e.g. replay:recordings/run1 or aravis:192.168.1.20)")
@@ -227,7 +264,7 @@ def parse_uri(uri: str) -> SourceSpec:
         left_uri, right_uri = _split_pair(body, uri)
         left, right = parse_uri(left_uri), parse_uri(right_uri)
         for side, spec in (("left", left), ("right", right)):
-            if spec.driver in ("stereo", "depthai"):
+            if spec.driver in ("stereo", "depthai") or spec.settings.left:
                 raise ConfigError(f"{what}: the {side} source must be a mono camera, not {spec.driver}")
         settings = _read_settings(ConfigReader(options, what), "stereo")
         return SourceSpec("stereo", "", settings, left, right)
@@ -236,6 +273,8 @@ def parse_uri(uri: str) -> SourceSpec:
     settings = _read_settings(ConfigReader(options, what), driver)
     if driver == "replay" and not target:
         raise ConfigError(f"{what}: replay needs a path (replay:FOLDER or replay:VIDEO_FILE)")
+    if driver in LOG_DRIVERS and not target:
+        raise ConfigError(f"{what}: {driver} needs a path ({driver}:FILE?topic=TOPIC)")
     if driver == "v4l2" and not target:
         target = "/dev/video0"
     if driver == "dc1394" and target:
@@ -279,7 +318,7 @@ def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "c
             raise r.fail("driver", "cannot be given together with 'uri' (the URI names the driver)")
         uri = r.string("uri")
         try:
-            base = parse_uri(uri)
+            base = _parse_uri(uri)
         except ConfigError as exc:
             raise r.fail("uri", f"is not a valid source URI: {exc}") from None
         if base.driver == "stereo":
@@ -291,12 +330,16 @@ def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "c
         if target_key in merged:
             raise r.fail(target_key, "cannot be given together with 'uri' (the URI names the device)")
         settings = _read_settings(ConfigReader(merged, r.source, r.prefix), base.driver)
+        if base.driver in LOG_DRIVERS:
+            _check_log_topics(r, base.driver, settings)
         return replace(base, settings=settings)
     driver = r.string("driver", choices=tuple(d for d in DRIVERS if d != "stereo"))
     target_key = TARGET_FIELD[driver]
     target = str(r.raw(target_key, "")) if r.has(target_key) else ""
     if driver == "replay" and not target:
         raise r.fail("path", "is missing (the folder, video file or recording to replay)")
+    if driver in LOG_DRIVERS and not target:
+        raise r.fail("path", f"is missing (the {'MCAP file' if driver == 'mcap' else 'bag'} to read)")
     if driver == "v4l2" and not target:
         target = "/dev/video0"
     if driver == "dc1394" and target:
@@ -305,6 +348,8 @@ def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "c
         except ConfigError as exc:
             raise r.fail("guid", str(exc).split(": ", 1)[1]) from None
     settings = _read_settings(r, driver, skip=("driver", target_key))
+    if driver in LOG_DRIVERS:
+        _check_log_topics(r, driver, settings)
     return SourceSpec(driver, target, settings)
 
 

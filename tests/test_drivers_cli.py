@@ -81,7 +81,7 @@ def test_record_then_replay_is_bit_exact(tmp_path: Path, capsys: pytest.CaptureF
 def test_bad_source_uri_is_one_line(capsys: pytest.CaptureFixture) -> None:
     assert main(["capture", "replay:x?pace=slow"]) == 2
     assert capsys.readouterr().err.strip() == (
-        "edgecal: error: source URI 'replay:x?pace=slow': field 'pace' must be one of recorded, fast (got 'slow')")
+        "edgecal: error: source URI 'replay:x?pace=slow': field 'pace' must be one of recorded, fast, realtime (got 'slow')")
 
 
 def test_sources_without_network(capsys: pytest.CaptureFixture) -> None:

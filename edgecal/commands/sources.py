@@ -1,4 +1,5 @@
-"""``edgecal sources``: which cameras are attached and usable, and which drivers are not and why."""
+"""``edgecal sources``: which cameras are attached and usable, and which drivers are not and why;
+``edgecal sources FILE.mcap`` / ``BAG``: the image topics of a robot log."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("sources", help="list attached cameras and which drivers are usable",
                        description="Ask every camera driver (V4L2, Aravis, IEEE-1394, DepthAI) what it sees. "
                                    "GigE Vision discovery broadcasts on the network; --no-network skips it.")
+    p.add_argument("log", nargs="?", metavar="LOG",
+                   help="an MCAP file, ROS 1 .bag or ROS 2 bag folder: list its image topics instead")
     p.add_argument("--no-network", action="store_true",
                    help="do not broadcast for GigE Vision or DepthAI network devices (USB, FireWire, V4L2 only)")
     p.add_argument("--fake", action="store_true", help="include libaravis's built-in fake camera")
@@ -22,6 +25,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Print the survey; exit 0 even when nothing is attached (that is an answer, not an error)."""
+    if args.log:
+        return _list_log(args.log, args.json)
     from edgecal.drivers.discovery import probe, survey
     reports = survey(network=not args.no_network, fake=args.fake)
     probes = [probe(uri) for uri in args.probe]
@@ -39,4 +44,42 @@ def run(args: argparse.Namespace) -> int:
             print(f"probe    {pr['uri']}: ok, {pr['size']} {pr.get('name', '')}")
         else:
             print(f"probe    {pr['uri']}: NOT USABLE: {pr['why']}")
+    return 0
+
+
+def _list_log(path: str, as_json: bool) -> int:
+    """Print the topics of a robot log: image topics with count, size, encoding and the URI to open them."""
+    from pathlib import Path
+
+    p = Path(path).expanduser()
+    if p.suffix == ".mcap" and not p.is_dir():
+        from edgecal.drivers.mcap_source import McapLog
+        log, driver = McapLog(p), "mcap"
+    else:
+        from edgecal.drivers.rosbag_source import RosbagLog
+        log, driver = RosbagLog(p), "rosbag"
+    infos = log.topics()
+    broken = log.broken
+    if as_json:
+        print(json.dumps({"log": str(p), "driver": driver,
+                          "topics": [{"topic": i.topic, "type": i.msgtype, "count": i.count, "image": i.is_image,
+                                      "size": i.size or None, "encoding": i.encoding or None} for i in infos.values()],
+                          "broken": None if broken is None else {"offset": broken.offset, "detail": broken.detail}},
+                         indent=1))
+        return 0
+    images = [i for i in infos.values() if i.is_image]
+    print(f"{p}: {len(images)} image topic{'s' if len(images) != 1 else ''} of {len(infos)}")
+    for i in images:
+        print(f"  {i.topic:32s} {i.msgtype.rsplit('/', 1)[-1]:16s} {i.count:7d} msgs  {i.size:>10s}  {i.encoding}")
+    for i in infos.values():
+        if not i.is_image:
+            print(f"  {i.topic:32s} {i.msgtype or '?':16s} {i.count:7d} msgs  (not images)")
+    if images:
+        first = images[0].topic
+        print(f"open with: {driver}:{p}?topic={first}" +
+              (f"   or  {driver}:{p}?left={first}&right={images[1].topic}" if len(images) > 1 else ""))
+    if broken is not None:
+        where = f"at byte {broken.offset}" if broken.offset is not None else "part-way"
+        print(f"warning: the log is truncated or corrupt {where} ({broken.detail}); the counts above may "
+              "include messages after the break that cannot be read")
     return 0
