@@ -36,7 +36,7 @@ from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.recording import MANIFEST, load_manifest
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, InputError
-from edgecal.images import IMAGE_SUFFIXES
+from edgecal.images import IMAGE_SUFFIXES, image_files
 
 DEFAULT_FPS = 30.0
 # A rendered stereo sequence's ground truth (edgecal.synth), whose frames carry their capture stamps.
@@ -70,9 +70,6 @@ def read_image_file(path: Path) -> np.ndarray:
     return image
 
 
-def image_files(folder: Path) -> list[Path]:
-    """The image files of ``folder`` in name order."""
-    return sorted(f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES)
 
 
 @dataclass(frozen=True)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
 import sys
 from typing import Sequence
 
@@ -29,11 +30,30 @@ COMMAND_MODULES = (
 )
 
 
+_RST_ROLE = re.compile(r":(?:func|class|meth|mod|attr|data|obj|ref):`~?([^`]+)`")
+_RST_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def plain_text(text: str | None) -> str | None:
+    """``text`` without reStructuredText markup, for the terminal.
+
+    Command descriptions are often the module docstring, written for the API docs; ``--help`` should
+    show ``edgecal run`` as edgecal run and :func:`detect` as detect, and a literal block's ``::`` as ``:``.
+    """
+    if not text:
+        return text
+    text = _RST_ROLE.sub(r"\1", text)
+    text = _RST_LITERAL.sub(r"\1", text)
+    return re.sub(r"::$", ":", text, flags=re.MULTILINE)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command registered."""
+    from edgecal import __version__
     parser = argparse.ArgumentParser(
         prog="edgecal",
         description="Chessboard detection, one-shot stereo calibration and live robot pose.")
+    parser.add_argument("--version", action="version", version=f"edgecal {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -41,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
         module = importlib.import_module(name)
         p = module.add_parser(sub)
         p.set_defaults(_run=module.run)
+        # One place cleans what every command shows, so no module has to write its docstring twice.
+        p.description = plain_text(p.description)
+        p.epilog = plain_text(p.epilog)
+        for action in p._actions:
+            action.help = plain_text(action.help)
     return parser
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -54,13 +55,32 @@ def load_grey(path: str | Path) -> np.ndarray:
     return as_grey(image, str(p))
 
 
+_DIGITS = re.compile(r"(\d+)")
+
+
+def natural_key(path: str | Path) -> tuple:
+    """Sort key that orders numbers inside names by value: ``img2.png`` before ``img10.png``.
+
+    Camera tools number files without leading zeros (left1 .. left14, Fisheye1_2 .. Fisheye1_10); a plain
+    string sort would interleave them and pair the wrong stereo images.
+    """
+    parts = _DIGITS.split(str(path))
+    return tuple((0, int(t), t) if i % 2 else (1, t.casefold(), t) for i, t in enumerate(parts))
+
+
+def image_files(folder: Path) -> list[Path]:
+    """The image files of ``folder`` in natural name order (2 before 10)."""
+    return sorted((f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES),
+                  key=natural_key)
+
+
 def expand_image_args(paths: list[str]) -> list[Path]:
-    """Expand folders into their image files (sorted by name); files are kept in the order given."""
+    """Expand folders into their image files (natural name order); files are kept in the order given."""
     out: list[Path] = []
     for item in paths:
         p = Path(item)
         if p.is_dir():
-            files = sorted(f for f in p.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+            files = image_files(p)
             if not files:
                 raise InputError(f"{p}: the folder holds no images ({', '.join(IMAGE_SUFFIXES)})")
             out.extend(files)

@@ -49,9 +49,10 @@ def test_planar_mono_rejects_a_bad_view():
     bad = left[3]
     left[3] = CornerSet(bad.object_mm, bad.image_px + np.random.default_rng(0).normal(0, 3.0, bad.image_px.shape),
                         bad.keys)
-    cal = calibrate_planar(left, None, SIZE)
-    assert any("view 3" in n and "rejected" in n for n in cal.notes)
-    assert 3 not in cal.view_index
+    names = [f"img{i}.png" for i in range(len(left))]
+    cal = calibrate_planar(left, None, SIZE, view_names=names)
+    assert any(n.startswith("img3.png: skipped, fits far worse") for n in cal.notes), cal.notes
+    assert 3 not in cal.view_index and cal.skipped_views[3].startswith("fits far worse")
     assert abs(cal.cameras[0].camera_matrix[0, 0] / cl.camera_matrix[0, 0] - 1) < 0.01
 
 
@@ -84,3 +85,13 @@ def test_bouguet_stereo_set_matches_published_baseline():
     cal = calibrate_planar(left, right, (640, 480))
     assert abs(cal.cameras[0].camera_matrix[0, 0] - 533.0) < 5.0
     assert abs(np.linalg.norm(cal.translation_mm) - 99.8) < 1.0
+
+
+def test_natural_sort_pairs_2_before_10(tmp_path):
+    """Folders of numbered images sort by number: left2 before left10 (a string sort would pair wrongly)."""
+    from edgecal.images import expand_image_args
+    for n in (1, 2, 10, 11):
+        (tmp_path / f"left{n}.png").write_bytes(b"")
+    (tmp_path / "notes.txt").write_text("not an image")
+    assert [p.name for p in expand_image_args([str(tmp_path)])] == ["left1.png", "left2.png", "left10.png",
+                                                                     "left11.png"]

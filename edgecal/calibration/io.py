@@ -4,7 +4,9 @@ rig.yaml nodes (stereo): image_size [w, h], camera_matrix_left, dist_coeffs_left
 dist_coeffs_right, R, T (metres; X_right = R X_left + T), and their standard deviations
 (intrinsics_std_left/right: fx fy cx cy k1 k2 p1 p2 k3, .Nan where the term was fixed; R_std_rad, the
 std of R's rotation vector; T_std_m), plus the rectification R1 R2 P1 P2 Q and quality figures.
-A single camera writes camera_matrix, dist_coeffs and intrinsics_std instead.
+A single camera writes camera_matrix, dist_coeffs and intrinsics_std instead. The ``provenance`` map says
+what produced the file: target and boards, square_mm, the view files, the corners file, the edgecal
+version, created (UTC ISO 8601) and the settings.
 
 rig.yaml and its camera_info files are written as one set (edgecal.fileio.write_atomic_set: every
 temporary, then every rename), so a reader or a rerun never finds half a file or half a set; an existing
@@ -38,7 +40,40 @@ def _std_row(std: dict[str, float]) -> np.ndarray:
     return np.array([[std.get(n, np.nan) for n in INTRINSIC_NAMES]], dtype=np.float64)
 
 
-def rig_yaml(cal: Calibration) -> str:
+def _write_node(fs: cv2.FileStorage, name: str, value: object) -> None:
+    """Write a plain value (str, number, bool, None, list, dict) as a FileStorage node; "" names a sequence item."""
+    if isinstance(value, dict):
+        fs.startWriteStruct(name, cv2.FileNode_MAP)
+        for k, v in value.items():
+            _write_node(fs, str(k), v)
+        fs.endWriteStruct()
+    elif isinstance(value, (list, tuple)):
+        fs.startWriteStruct(name, cv2.FileNode_SEQ)
+        for v in value:
+            _write_node(fs, "", v)
+        fs.endWriteStruct()
+    elif isinstance(value, (bool, int, np.integer)):
+        fs.write(name, int(value))
+    elif isinstance(value, (float, np.floating)):
+        fs.write(name, float(value))
+    else:
+        fs.write(name, "" if value is None else str(value))
+
+
+def _read_node(node: cv2.FileNode) -> object:
+    """The plain value of a FileStorage node (the inverse of _write_node; booleans come back as 0/1)."""
+    if node.isMap():
+        return {k: _read_node(node.getNode(k)) for k in node.keys()}
+    if node.isSeq():
+        return [_read_node(node.at(i)) for i in range(node.size())]
+    if node.isInt():
+        return int(node.real())
+    if node.isReal():
+        return float(node.real())
+    return node.string()
+
+
+def rig_yaml(cal: Calibration, provenance: dict | None = None) -> str:
     """The rig.yaml text (OpenCV FileStorage YAML) of a calibration."""
     # written to memory: the file itself is written by write_atomic_set with the others of its set
     fs = cv2.FileStorage(".yaml", cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY)
@@ -75,6 +110,8 @@ def rig_yaml(cal: Calibration) -> str:
         if cal.reconstruction is not None:
             fs.write("reconstruction_error_mean_mm", float(cal.reconstruction.mean_mm))
             fs.write("reconstruction_error_std_mm", float(cal.reconstruction.std_mm))
+    if provenance:
+        _write_node(fs, "provenance", provenance)
     return fs.releaseAndGetString()
 
 
@@ -83,10 +120,14 @@ def _matrix(m: np.ndarray) -> dict:
     return {"rows": int(m.shape[0]), "cols": int(m.shape[1]), "data": [float(v) for v in m.ravel()]}
 
 
-def camera_info(cal: Calibration, index: int) -> dict:
-    """The ROS sensor_msgs/CameraInfo YAML mapping (camera_calibration_parsers layout) of one camera."""
+def camera_info(cal: Calibration, index: int, camera_name: str | None = None) -> dict:
+    """The ROS sensor_msgs/CameraInfo YAML mapping (camera_calibration_parsers layout) of one camera.
+
+    ``camera_name`` should be the name the camera driver gives (camera_info_manager warns on a mismatch);
+    default "left"/"right"/"camera".
+    """
     cam = cal.cameras[index]
-    name = cal.camera_names[index]
+    name = camera_name or cal.camera_names[index]
     if cal.is_stereo and cal.rectification is not None:
         rect = cal.rectification.r1 if index == 0 else cal.rectification.r2
         proj = (cal.rectification.p1 if index == 0 else cal.rectification.p2).copy()
@@ -106,19 +147,24 @@ def camera_info(cal: Calibration, index: int) -> dict:
     }
 
 
-def write_calibration(cal: Calibration, path: str | Path, force: bool = False) -> list[Path]:
+def write_calibration(cal: Calibration, path: str | Path, force: bool = False, provenance: dict | None = None,
+                      camera_names: list[str] | None = None, also: dict[Path, bytes] | None = None) -> list[Path]:
     """Write rig.yaml and one camera_info YAML per camera as one set; return the paths written.
 
+    ``provenance`` (plain values) becomes rig.yaml's provenance map; ``camera_names`` the camera_info
+    camera_name of each camera; ``also`` are files written in the same set (the corners file).
     Nothing is written if any destination exists and ``force`` is off, or its folder is not writable.
     """
     rig = Path(path)
     infos = camera_info_paths(rig, cal.is_stereo)
-    check_outputs([rig, *infos], force)
-    files = {rig: rig_yaml(cal).encode("utf-8")}
+    check_outputs([rig, *infos, *(also or {})], force)
+    files = {rig: rig_yaml(cal, provenance).encode("utf-8")}
     for i, p in enumerate(infos):
-        files[p] = yaml.safe_dump(camera_info(cal, i), sort_keys=False, default_flow_style=None).encode("utf-8")
+        info = camera_info(cal, i, camera_names[i] if camera_names else None)
+        files[p] = yaml.safe_dump(info, sort_keys=False, default_flow_style=None).encode("utf-8")
+    files.update(also or {})
     write_atomic_set(files)
-    return [rig, *infos]
+    return list(files)
 
 
 @dataclass
@@ -133,6 +179,7 @@ class Rig:
     rotation_std_rad: np.ndarray | None = None
     translation_std_m: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)  # R1 R2 P1 P2 Q when present
+    provenance: dict = field(default_factory=dict)  # what produced the file (empty for older files)
 
     @property
     def is_stereo(self) -> bool:
@@ -199,6 +246,9 @@ def load_rig(path: str | Path) -> Rig:
                 m = node(name, None, required=False)
                 if m is not None:
                     rig.extra[name] = m
+        prov = fs.getNode("provenance")
+        if not prov.empty() and prov.isMap():
+            rig.provenance = _read_node(prov)
         return rig
     finally:
         fs.release()

@@ -71,14 +71,17 @@ def _usable(views: list[CornerSet]) -> list[int]:
 
 def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] | None,
                      image_size: tuple[int, int], options: RefineOptions = RefineOptions(),
-                     planar: PlanarSettings = PlanarSettings()) -> Calibration:
+                     planar: PlanarSettings = PlanarSettings(), view_names: list[str] | None = None) -> Calibration:
     """Mono (``views_right`` None) or stereo calibration from views of one flat board.
 
     Stereo views are pairs matched by order; a pair is used when the board is found in both images.
+    ``view_names`` (one per input view, e.g. its file name) name the views in notes and corner labels.
     Raises DegenerateInput naming what is missing (too few views).
     """
     stereo = views_right is not None
     notes: list[str] = []
+    skipped: dict[int, str] = {}
+    names = list(view_names) if view_names is not None else [f"view {i}" for i in range(len(views_left))]
     if stereo:
         if len(views_left) != len(views_right):
             raise DegenerateInput(f"{len(views_left)} left and {len(views_right)} right images: pairs are "
@@ -89,7 +92,10 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
             if len(common) >= MIN_CORNERS_PER_VIEW:
                 keep.append(i)
             else:
-                notes.append(f"pair {i}: board not seen in both images, skipped")
+                side = ("either image" if len(a) < MIN_CORNERS_PER_VIEW and len(b) < MIN_CORNERS_PER_VIEW
+                        else "the left image" if len(a) < MIN_CORNERS_PER_VIEW
+                        else "the right image" if len(b) < MIN_CORNERS_PER_VIEW else "both images at once")
+                skipped[i] = f"board not found in {side}"
         # stereoCalibrate needs the same corners in both images of a pair
         pairs = []
         for i in keep:
@@ -103,8 +109,8 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         index = keep
     else:
         index = _usable(views_left)
-        for i in set(range(len(views_left))) - set(index):
-            notes.append(f"view {i}: board not found, skipped")
+        for i in sorted(set(range(len(views_left))) - set(index)):
+            skipped[i] = "board not found"
         cams_views = [[views_left[i] for i in index]]
     what = "stereo pairs" if stereo else "views"
     if len(index) < planar.min_views:
@@ -120,7 +126,7 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         if not len(bad) or len(index) - len(bad) < planar.min_views:
             break
         for b in bad:
-            notes.append(f"{what[:-1]} {index[b]}: RMS {worst[b]:.2f} px > {limit:.2f} px, rejected")
+            skipped[index[b]] = f"fits far worse than the others: RMS {worst[b]:.2f} px > {limit:.2f} px"
         good = [i for i in range(len(index)) if i not in set(bad)]
         cams_views = [[v[i] for i in good] for v in cams_views]
         index = [index[i] for i in good]
@@ -149,8 +155,10 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         rigs = [Pose.from_rt(r, np.ravel(t))]
         notes.append(f"OpenCV stereoCalibrate RMS {out[0]:.3f} px")
     corners = cams_views
-    res = refine(observations_for(corners, list(index)), cameras, view_poses, rigs, options)
+    res = refine(observations_for(corners, [names[i] for i in index]), cameras, view_poses, rigs, options)
     cal = calibration_from_result("planar-stereo" if stereo else "planar-mono", image_size, corners, res)
     cal.view_index = list(index)
-    cal.notes = notes + cal.notes + [f"{len(index)} {what} used: {', '.join(str(i) for i in index)}"]
+    cal.skipped_views = dict(sorted(skipped.items()))
+    cal.notes = ([f"{names[i]}: skipped, {why}" for i, why in cal.skipped_views.items()] + notes + cal.notes
+                 + [f"{len(index)} of {len(names)} {what} used"])
     return finish_stereo(cal) if stereo else cal

@@ -302,10 +302,11 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
                         residuals, inliers, dropped, rank_deficient)
 
 
-def observations_for(corners: list[list[CornerSet]], view_ids: list[int] | None = None) -> list[Observation]:
+def observations_for(corners: list[list[CornerSet]], view_ids: list[int] | list[str] | None = None
+                     ) -> list[Observation]:
     """One Observation per camera and view of ``corners[camera][view]`` (empty sets are skipped).
 
-    ``view_ids`` name the views in corner labels (e.g. the input image numbers); default 0, 1, ...
+    ``view_ids`` name the views in corner labels (their file names, or numbers); default 0, 1, ...
     """
     names = CAMERA_NAMES if len(corners) == 2 else ("camera",)
     multi = max(len(c) for c in corners) > 1

@@ -7,8 +7,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from edgecal.calibration.settings import Acceptance
 from edgecal.calibration.types import Calibration
+from edgecal.calibration.views import View
+from edgecal.errors import EdgecalError
 from edgecal.fileio import check_outputs, png_bytes, write_atomic_set
+from edgecal.images import load_grey
 
 VECTOR_GAIN = 20.0  # residual vectors are drawn this many times longer than they are
 
@@ -130,22 +134,43 @@ def residual_histogram(cal: Calibration, bins: int = 20) -> np.ndarray:
                      f"residual length histogram (px), {len(norms)} corners, RMS {cal.rms_px:.3f} px", "corners")
 
 
-def write_report(cal: Calibration, images: list[list[np.ndarray]], folder: str | Path,
-                 force: bool = False) -> list[Path]:
-    """Write overlays (one per camera and view), the histogram, the per-board chart and summary.txt.
+def _file_stem(view_name: str) -> str:
+    """A file-name-safe stem of a view's name (``left/000003.png`` -> ``left_000003``)."""
+    stem = view_name.rsplit(".", 1)[0] if "." in Path(view_name).name else view_name
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in stem)
 
-    ``images[camera][view]`` are the calibrated images (grey or BGR). Returns the paths written.
+
+def _view_images(views: list[View], cal: Calibration) -> dict[tuple[int, int], np.ndarray]:
+    """The images of the used views that can still be read, keyed by (camera, calibration view)."""
+    order = list(cal.view_index) if cal.view_index else list(range(len(cal.corners[0])))
+    out = {}
+    for v, i in enumerate(order):
+        for c in range(len(cal.cameras)):
+            try:
+                out[(c, v)] = load_grey(views[i].files[c])
+            except (EdgecalError, IndexError):
+                continue  # a re-solve from a corners file whose images are gone: no overlay for them
+    return out
+
+
+def write_report(cal: Calibration, views: list[View], folder: str | Path, force: bool = False,
+                 problems: list[str] | None = None, bounds: Acceptance | None = None,
+                 provenance: dict | None = None) -> list[Path]:
+    """Write overlays (one per camera and view, named by the view's file), the histogram, the per-board
+    chart and summary.txt. Returns the paths written.
     """
     out = Path(folder)
-    multi = max(len(v) for v in cal.corners) > 1
+    multi = len(views) > 1
+    order = list(cal.view_index) if cal.view_index else list(range(len(cal.corners[0])))
+    images = _view_images(views, cal)
     plan: list[tuple[Path, np.ndarray | str]] = []
     for c, name in enumerate(cal.camera_names):
         for v, cs in enumerate(cal.corners[c]):
-            if v >= len(images[c]) or not len(cs):
+            if (c, v) not in images or not len(cs):
                 continue
-            number = cal.view_index[v] if v < len(cal.view_index) else v  # the input image's number
-            fname = f"overlay_{name}_{number:02d}.png" if multi else f"overlay_{name}.png"
-            plan.append((out / fname, overlay(images[c][v], cs.image_px, cal.residuals_px[c][v], cal.inliers[c][v])))
+            fname = f"overlay_{name}_{_file_stem(views[order[v]].name)}.png" if multi else f"overlay_{name}.png"
+            plan.append((out / fname, overlay(images[(c, v)], cs.image_px, cal.residuals_px[c][v],
+                                              cal.inliers[c][v])))
     plan.append((out / "residual_histogram.png", residual_histogram(cal)))
     per_board = cal.per_board_rms_px()
     plan.append((out / "per_board_error.png",

@@ -60,9 +60,12 @@ class CornerSet:
     def __len__(self) -> int:
         return len(self.keys)
 
-    def labels(self, camera: str, view: int | None = None) -> tuple[str, ...]:
-        """Human-readable corner names for reports, e.g. ``left view 2 board top (3,1)``."""
-        where = camera if view is None else f"{camera} view {view}"
+    def labels(self, camera: str, view: int | str | None = None) -> tuple[str, ...]:
+        """Human-readable corner names for reports, e.g. ``left left03.jpg board top (3,1)``.
+
+        ``view`` is the view's file name (or a number when there is none).
+        """
+        where = camera if view is None else f"{camera} view {view}" if isinstance(view, int) else f"{camera} {view}"
         return tuple(f"{where} board {b} ({c},{r})" for b, c, r in self.keys)
 
 
@@ -120,6 +123,7 @@ class Calibration:
     notes: list[str] = field(default_factory=list)
     init: dict[str, dict[str, float]] = field(default_factory=dict)  # camera -> method -> RMS after refinement
     view_index: list[int] = field(default_factory=list)  # input image (pair) of each view, planar case
+    skipped_views: dict[int, str] = field(default_factory=dict)  # input view -> why it was not used
     view_pose_std: list[np.ndarray] = field(default_factory=list)  # per view: std of rx ry rz (rad), tx ty tz (mm)
 
     @property

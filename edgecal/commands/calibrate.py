@@ -2,13 +2,22 @@
 
     edgecal calibrate --target configs/targets/box-100mm.yaml --left L.png --right R.png --out rig.yaml
     edgecal calibrate --board 9x6 --square-mm 30 --left left/ --right right/ --out rig.yaml
+    edgecal calibrate --board 9x6 --square-mm 30 --left views/ --out rig.yaml   # an edgecal recording
+    edgecal calibrate --board 9x6 --square-mm 30 --corners rig.corners.csv --out rig2.yaml  # no detection
     edgecal calibrate --target box.yaml --left L.png --out camera.yaml          # one camera
+
+Views are named by their image files everywhere (messages, report, JSON). Beside rig.yaml go the
+camera_info files and NAME.corners.csv, the corners found (views/ module), so ``--corners`` re-solves.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import sys
+import time
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +29,23 @@ from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.planar import calibrate_planar
 from edgecal.calibration.refine import DISTORTION_MODELS
 from edgecal.calibration.report import format_summary, write_report
-from edgecal.calibration.settings import load_calibration_settings
+from edgecal.calibration.results import calibration_json
+from edgecal.calibration.settings import CalibrationSettings, load_calibration_settings
 from edgecal.calibration.stereo import calibrate_box_stereo
 from edgecal.calibration.types import Calibration, CornerSet
+from edgecal.calibration.views import (
+    View,
+    camera_names,
+    corner_set,
+    corners_path,
+    corners_text,
+    name_views,
+    read_corners,
+)
 from edgecal.errors import CalibrationRejected, ConfigError, EdgecalError, InputError
 from edgecal.fileio import check_outputs
 from edgecal.images import expand_image_args, load_grey
+from edgecal.progress import Progress
 from edgecal.targets import Target, load_target, parse_board_spec
 
 log = logging.getLogger(__name__)
@@ -38,32 +58,59 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="One image per camera of a calibration box (--target) gives intrinsics, distortion and "
                     "the stereo pose; with --board CxR --square-mm S and several images per camera, planar "
                     "multi-view calibration. Results are refused, not written, when outside the bounds of "
-                    "configs/calibration.yaml.")
+                    "configs/calibration.yaml. Writes rig.yaml (with its provenance), the camera_info files "
+                    "and NAME.corners.csv, the corners found, which --corners re-solves without detecting.")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--target", help="target YAML (configs/targets/*.yaml)")
     src.add_argument("--board", help="flat board of COLSxROWS inner corners, e.g. 9x6 (planar multi-view)")
     p.add_argument("--square-mm", type=float, help="square size in mm (with --board)")
-    p.add_argument("--left", nargs="+", required=True, help="left (or only) camera image(s) or a folder")
+    views = p.add_mutually_exclusive_group(required=True)
+    views.add_argument("--left", nargs="+", help="left (or only) camera image(s), a folder, or an edgecal "
+                                                 "recording folder (edgecal collect/record)")
+    views.add_argument("--corners", metavar="FILE", help="re-solve from a corners file (NAME.corners.csv "
+                                                         "written by an earlier calibrate) without detecting")
     p.add_argument("--right", nargs="+", help="right camera image(s) or a folder (pairs matched by order)")
-    p.add_argument("--out", required=True, help="rig.yaml to write (plus NAME.*.camera_info.yaml beside it)")
-    p.add_argument("--report", help="folder for overlays, residual histogram, per-board error, summary.txt")
+    p.add_argument("--out", required=True, help="rig.yaml to write (plus NAME.*.camera_info.yaml and "
+                                                "NAME.corners.csv beside it)")
+    p.add_argument("--report", metavar="DIR", help="write a report into DIR (index.html, figures, summary.txt)")
+    p.add_argument("--json", action="store_true", help="print one JSON object on stdout (parameters, sigma, "
+                                                       "RMS, bounds and verdict, every view); text goes to stderr")
+    p.add_argument("--camera-name", nargs="+", metavar="NAME",
+                   help="camera_name in the camera_info files, one per camera (the name your camera driver "
+                        "uses; camera_info_manager warns when it does not match)")
     p.add_argument("--config", help="calibration settings (default: the packaged configs/calibration.yaml)")
     p.add_argument("--distortion", choices=tuple(DISTORTION_MODELS), help="override the config's distortion model")
     p.add_argument("--force", action="store_true", help="replace existing output files")
     return p
 
 
-def _load_images(paths: list[Path]) -> list[np.ndarray]:
-    return [load_grey(p) for p in paths]
+def _recording_files(folder: Path) -> tuple[list[Path], list[Path] | None] | None:
+    """The left (or only) and right image files of an edgecal recording, or None if ``folder`` is not one."""
+    from edgecal.drivers.recording import MANIFEST, load_manifest
+    if not (folder / MANIFEST).is_file():
+        return None
+    manifest = load_manifest(folder)
+    if manifest["layout"] == "stereo":
+        return ([folder / e["left"]["file"] for e in manifest["frames"]],
+                [folder / e["right"]["file"] for e in manifest["frames"]])
+    return [folder / e["file"] for e in manifest["frames"]], None
 
 
-def _check_sizes(images: list[np.ndarray], paths: list[Path]) -> tuple[int, int]:
-    h, w = images[0].shape[:2]
-    for img, p in zip(images, paths):
-        if img.shape[:2] != (h, w):
-            raise InputError(f"{p}: the image is {img.shape[1]}x{img.shape[0]} but {paths[0]} is {w}x{h}; "
-                             f"all images must come from cameras of one size")
-    return w, h
+def input_views(left: list[str], right: list[str] | None) -> list[View]:
+    """The views of ``--left``/``--right``: files, folders (natural order) or one recording folder."""
+    rec = _recording_files(Path(left[0])) if len(left) == 1 and Path(left[0]).is_dir() else None
+    if rec is not None and right is None:
+        left_paths, right_paths = rec
+        if not left_paths:
+            raise InputError(f"{left[0]}: the recording holds no frames")
+    else:
+        left_paths = expand_image_args(left)
+        right_paths = expand_image_args(right) if right else None
+    if right_paths is not None and len(right_paths) != len(left_paths):
+        raise InputError(f"{len(left_paths)} left and {len(right_paths)} right images: pairs are matched by "
+                         f"order, give the same number of each")
+    files = [(lp,) if right_paths is None else (lp, right_paths[i]) for i, lp in enumerate(left_paths)]
+    return name_views(files)
 
 
 def _detect(image: np.ndarray, target: Target) -> list:
@@ -77,46 +124,99 @@ def _detect(image: np.ndarray, target: Target) -> list:
 def _planar_corners(dets: list, target: Target) -> CornerSet:
     a = assign(dets, target)
     if a is None:
-        return CornerSet(np.zeros((0, 3)), np.zeros((0, 2)), ())
-    board = target.boards[0]
-    ids = np.array([k[1:] for k in a.corners.keys], dtype=np.int64).reshape(-1, 2)
-    return CornerSet(board.board_points_mm(ids), a.corners.image_px, a.corners.keys)
+        return corner_set(target, [], np.zeros((0, 2)))
+    return corner_set(target, list(a.corners.keys), a.corners.image_px)
 
 
-def calibrate_images(target: Target, left: list[np.ndarray], right: list[np.ndarray] | None,
-                     left_paths: list[Path], right_paths: list[Path] | None, settings) -> Calibration:
-    """Detect, assign and calibrate; errors name the image that is missing a board."""
-    size = _check_sizes(left + (right or []), left_paths + (right_paths or []))
+def detect_views(views: list[View], target: Target) -> tuple[list[list[CornerSet]], tuple[int, int]]:
+    """Detect and assign the target in every view: corners ``[camera][view]`` and the image size.
+
+    A box view's corners come from the joint assignment of both images (assign_stereo). Images of
+    different sizes are an InputError naming both files. Shows progress when stderr is a terminal.
+    """
+    n_cams = len(views[0].files)
+    corners: list[list[CornerSet]] = [[] for _ in range(n_cams)]
+    size: tuple[int, int] | None = None
+    first = ""
+    with Progress("detecting", len(views)) as bar:
+        for i, view in enumerate(views):
+            bar.update(i, view.name)
+            images = [load_grey(f) for f in view.files]
+            for img, f in zip(images, view.files):
+                h, w = img.shape[:2]
+                if size is None:
+                    size, first = (w, h), f
+                elif (w, h) != size:
+                    raise InputError(f"{f}: the image is {w}x{h} but {first} is {size[0]}x{size[1]}; "
+                                     f"all images must come from cameras of one size")
+            dets = [_detect(img, target) for img in images]
+            if target.is_planar:
+                found = [_planar_corners(d, target) for d in dets]
+            elif n_cams == 1:
+                a = assign(dets[0], target)
+                found = [a.corners if a is not None else corner_set(target, [], np.zeros((0, 2)))]
+            else:
+                pair = assign_stereo(dets[0], dets[1], target)
+                found = [a.corners if a is not None else corner_set(target, [], np.zeros((0, 2))) for a in pair]
+            for c in range(n_cams):
+                corners[c].append(found[c])
+    assert size is not None
+    return corners, size
+
+
+def solve(target: Target, views: list[View], corners: list[list[CornerSet]], size: tuple[int, int],
+          settings: CalibrationSettings) -> Calibration:
+    """Calibrate from the corners of every view; errors name the image that is missing a board."""
+    names = camera_names(len(corners))
     if target.is_planar:
         if len(target.boards) != 1:
             raise ConfigError(f"{target.source}: planar calibration needs a target of exactly one board")
-        views_l = [_planar_corners(_detect(img, target), target) for img in left]
-        views_r = [_planar_corners(_detect(img, target), target) for img in right] if right is not None else None
-        return calibrate_planar(views_l, views_r, size, settings.refine, settings.planar)
-    if len(left) != 1 or (right is not None and len(right) != 1):
-        raise InputError(f"a box calibration takes one image per camera (got {len(left)} left"
-                         + (f", {len(right)} right" if right is not None else "") + "); use --board for many views")
-    dets_l = _detect(left[0], target)
-    if right is None:
-        a = assign(dets_l, target)
-        if a is None:
-            raise InputError(f"{left_paths[0]}: no board of target {target.name!r} found in the image")
-        log.info("left: %s (DLT residual %.3f px)", a.describe(), a.rms_px)
-        return calibrate_box_mono(a.corners, size, settings.refine)
-    dets_r = _detect(right[0], target)
-    a_l, a_r = assign_stereo(dets_l, dets_r, target)
-    for a, p, side in ((a_l, left_paths[0], "left"), (a_r, right_paths[0], "right")):
-        if a is None:
-            raise InputError(f"{p}: no board of target {target.name!r} found in the {side} image")
-        log.info("%s: %s (DLT residual %.3f px)", side, a.describe(), a.rms_px)
-    return calibrate_box_stereo(a_l.corners, a_r.corners, size, settings.refine)
+        right = corners[1] if len(corners) == 2 else None
+        with Progress("solving", None) as bar:
+            bar.update(0, f"{len(views)} views", force=True)
+            return calibrate_planar(corners[0], right, size, settings.refine, settings.planar,
+                                    view_names=[v.name for v in views])
+    if len(views) != 1:
+        raise InputError(f"a box calibration takes one image per camera (got {len(views)} views); "
+                         f"use --board for many views")
+    for c, name in enumerate(names):
+        if not len(corners[c][0]):
+            side = "" if len(names) == 1 else f" in the {name} image"
+            raise InputError(f"{views[0].files[c]}: no board of target {target.name!r} found{side}")
+    if len(names) == 1:
+        return calibrate_box_mono(corners[0][0], size, settings.refine)
+    return calibrate_box_stereo(corners[0][0], corners[1][0], size, settings.refine)
+
+
+def provenance(target: Target, views: list[View], cal: Calibration, settings: CalibrationSettings,
+               config: str | None, corners_file: Path) -> dict:
+    """What produced a calibration, for rig.yaml and the JSON: target, views, version, time, settings."""
+    from edgecal import __version__
+    squares = sorted({b.square_mm for b in target.boards})
+    used = set(cal.view_index) if cal.view_index else set(range(len(views)))
+    prov: dict = {
+        "edgecal_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "target": target.name,
+        "target_source": target.source,
+        "boards": [{"name": b.name, "inner_corners": [b.cols, b.rows], "square_mm": b.square_mm}
+                   for b in target.boards],
+    }
+    if len(squares) == 1:
+        prov["square_mm"] = squares[0]
+    prov["cameras"] = list(cal.camera_names)
+    prov["views"] = [{"view": v.name, "files": list(v.files), "used": i in used} for i, v in enumerate(views)]
+    prov["corners_file"] = str(corners_file)
+    prov["settings"] = {"config": config or "configs/calibration.yaml (packaged)",
+                        "refine": asdict(settings.refine), "acceptance": asdict(settings.acceptance),
+                        "planar": asdict(settings.planar)}
+    return prov
 
 
 def run(args: argparse.Namespace) -> int:
-    """Calibrate, print the summary, write the report and (if acceptable) the rig file."""
+    """Calibrate, print the summary (or JSON), write the report and (if acceptable) the rig files."""
     settings = load_calibration_settings(args.config)
     if args.distortion:
-        from dataclasses import replace
         settings = replace(settings, refine=replace(settings.refine, distortion=args.distortion))
     if args.board:
         if args.square_mm is None or args.square_mm <= 0:
@@ -126,32 +226,48 @@ def run(args: argparse.Namespace) -> int:
         target = load_target(args.target)
         for w in symmetry_warnings(target):
             log.warning("%s", w)
-    left_paths = expand_image_args(args.left)
-    right_paths = expand_image_args(args.right) if args.right else None
+    if args.corners and args.right:
+        raise InputError("--right goes with --left; a corners file already holds both cameras")
     out = Path(args.out)
+    if args.corners:
+        loaded = read_corners(args.corners, target)
+        views, corners, size = loaded.views, loaded.corners, loaded.image_size
+    else:
+        views = input_views(args.left, args.right)
+    n_cams = len(views[0].files)
+    if not target.is_planar and len(views) != 1:
+        raise InputError(f"a box calibration takes one image per camera (got {len(views)} views); "
+                         f"use --board for many views")
+    if args.camera_name and len(args.camera_name) != n_cams:
+        raise InputError(f"--camera-name needs one name per camera ({n_cams}), got {len(args.camera_name)}")
+    corners_out = corners_path(out)
+    outputs = [out, *camera_info_paths(out, n_cams == 2)]
+    # A re-solve names the corners file it read in the provenance; only a detection writes one.
+    write_corners = not args.corners
+    if write_corners:
+        outputs.append(corners_out)
     # Refuse to clobber, or to work for a folder that cannot be written, before any work is done.
-    check_outputs([out, *camera_info_paths(out, right_paths is not None)], args.force)
+    check_outputs(outputs, args.force)
     if args.report:
         check_outputs([Path(args.report) / "summary.txt"], args.force, create_folders=True)
-    left = _load_images(left_paths)
-    right = _load_images(right_paths) if right_paths else None
-    cal = calibrate_images(target, left, right, left_paths, right_paths, settings)
-    print(format_summary(cal))
-    if args.report:
-        images = [left] + ([right] if right is not None else [])
-        if target.is_planar:  # planar views may have been skipped: map the kept corners back to their images
-            images = _planar_report_images(cal, images)
-        for p in write_report(cal, images, args.report, args.force):
-            log.info("wrote %s", p)
+    if not args.corners:
+        corners, size = detect_views(views, target)
+    cal = solve(target, views, corners, size, settings)
     problems = acceptance_problems(cal, settings.acceptance)
+    text = sys.stderr if args.json else sys.stdout
+    print(format_summary(cal), file=text)
+    prov = provenance(target, views, cal, settings, args.config,
+                      corners_out if write_corners else Path(args.corners))
+    if args.report:
+        for p in write_report(cal, views, args.report, args.force, problems=problems,
+                              bounds=settings.acceptance, provenance=prov):
+            log.info("wrote %s", p)
+    if args.json:
+        print(json.dumps(calibration_json(cal, views, problems, settings.acceptance, prov)), flush=True)
     if problems:
         raise CalibrationRejected(f"calibration refused, {out} not written (bounds in "
                                   f"{args.config or 'configs/calibration.yaml'}): " + "; ".join(problems))
-    for p in write_calibration(cal, out, args.force):
-        print(f"wrote {p}")
+    also = {corners_out: corners_text(views, corners, size, target).encode("utf-8")} if write_corners else {}
+    for p in write_calibration(cal, out, args.force, provenance=prov, camera_names=args.camera_name, also=also):
+        print(f"wrote {p}", file=text)
     return 0
-
-
-def _planar_report_images(cal: Calibration, images: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
-    """The images of the views that were kept, in the calibration's view order."""
-    return [[imgs[i] for i in cal.view_index] for imgs in images]
