@@ -22,8 +22,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-
 from edgecal.drivers.base import Frame, Source, StereoFrame
+
 from edgecal.errors import InputError
 from edgecal.fileio import check_outputs, png_bytes, sync_paths, write_atomic
 
@@ -127,14 +127,20 @@ class RecordingSummary:
 
 
 def record(source: Source, out_dir: str | Path, frames: int | None = None, seconds: float | None = None,
-           force: bool = False, on_frame: Callable[[int, Frame | StereoFrame], None] | None = None
-           ) -> RecordingSummary:
+           force: bool = False, on_frame: Callable[[int, Frame | StereoFrame], None] | None = None,
+           image_format: str = "raw") -> RecordingSummary:
     """Record from an opened ``source`` until ``frames`` frames or ``seconds`` have passed (or it ends).
 
     With neither limit, records until the source ends (a replay) or KeyboardInterrupt (a camera); the
-    manifest is written in every case.
+    manifest is written in every case. ``out_dir`` ending in ``.mcap`` records ROS 2 Image messages into
+    that MCAP file instead (drivers/mcap_record.py; ``image_format`` raw, png or jpeg).
     """
-    rec = Recorder(out_dir, source.describe(), force=force)
+    rec: Any
+    if str(out_dir).endswith(".mcap"):
+        from edgecal.drivers.mcap_record import McapRecorder
+        rec = McapRecorder(out_dir, source.describe(), force=force, image_format=image_format)
+    else:
+        rec = Recorder(out_dir, source.describe(), force=force)
     t0 = time.monotonic()
     n = 0
     try:
