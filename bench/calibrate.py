@@ -49,7 +49,8 @@ from edgecal.calibration.mono import linear_start  # noqa: E402
 from edgecal.calibration.planar import calibrate_planar, opencv_flags  # noqa: E402
 from edgecal.calibration.refine import RefineOptions  # noqa: E402
 from edgecal.calibration.stereo import calibrate_box_stereo, triangulate  # noqa: E402
-from edgecal.calibration.types import Camera, CornerSet, Pose  # noqa: E402
+from edgecal.calibration.types import CornerSet, RigidTransform  # noqa: E402
+from edgecal.camera import CameraModel  # noqa: E402
 from edgecal.images import load_grey  # noqa: E402
 from edgecal.synth.scenes import box_stereo, box_target  # noqa: E402
 from edgecal.targets import load_target, planar_target  # noqa: E402
@@ -70,14 +71,14 @@ def _truth(pair: dict) -> dict:
     out = {}
     for side in ("left", "right"):
         c = pair[side]
-        out[side] = Camera(np.array(c["K"]), np.array(c["dist"], dtype=float))
-        out[side + "_pose"] = Pose.from_rt(np.array(c["R_cam_world"]), np.array(c["t_cam_world_mm"]))
+        out[side] = CameraModel.from_opencv(np.array(c["K"]), np.array(c["dist"], dtype=float))
+        out[side + "_pose"] = RigidTransform.from_rt(np.array(c["R_cam_world"]), np.array(c["t_cam_world_mm"]))
     out["R"] = np.array(pair["R_right_left"])
     out["T"] = np.array(pair["T_right_left_mm"])
     return out
 
 
-def _exact(cs: CornerSet, cam: Camera, pose: Pose) -> CornerSet:
+def _exact(cs: CornerSet, cam: CameraModel, pose: RigidTransform) -> CornerSet:
     px, _ = cv2.projectPoints(cs.object_mm, pose.rvec, pose.tvec, cam.camera_matrix, cam.dist_coeffs)
     return CornerSet(cs.object_mm, px.reshape(-1, 2), cs.keys)
 
@@ -92,7 +93,7 @@ def _angle_deg(r: np.ndarray) -> float:
     return float(np.degrees(np.linalg.norm(cv2.Rodrigues(u @ vt)[0])))
 
 
-def _score(cams: list[Camera], r: np.ndarray, t: np.ndarray, box_pose: Pose, rms: float, truth: dict,
+def _score(cams: list[CameraModel], r: np.ndarray, t: np.ndarray, box_pose: RigidTransform, rms: float, truth: dict,
            left: CornerSet, right: CornerSet, ms: float) -> dict:
     tc = [truth["left"], truth["right"]]
     focal = np.mean([abs(c.camera_matrix[i, i] / g.camera_matrix[i, i] - 1) * 100 for c, g in zip(cams, tc)
@@ -100,7 +101,7 @@ def _score(cams: list[Camera], r: np.ndarray, t: np.ndarray, box_pose: Pose, rms
     pp = np.mean([np.linalg.norm(c.camera_matrix[:2, 2] - g.camera_matrix[:2, 2]) for c, g in zip(cams, tc)])
     k1 = np.mean([abs(c.dist_coeffs[0] - g.dist_coeffs[0]) for c, g in zip(cams, tc)])
     l, rr = _common(left, right)
-    est = triangulate(cams[0], cams[1], Pose.from_rt(r, t), l.image_px, rr.image_px)
+    est = triangulate(cams[0], cams[1], RigidTransform.from_rt(r, t), l.image_px, rr.image_px)
     recon = float(np.mean(np.linalg.norm(est - box_pose.apply(l.object_mm), axis=1)))
     return {"focal_pct": float(focal), "pp_px": float(pp), "k1_abs": float(k1),
             "rot_deg": _angle_deg(r @ truth["R"].T), "baseline_mm": float(np.linalg.norm(t - truth["T"])),
@@ -130,8 +131,8 @@ def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: 
         _, k, d, rv, tv = cv2.calibrateCamera([cs.object_mm.astype(np.float32)],
                                               [cs.image_px.astype(np.float32).reshape(-1, 1, 2)], size,
                                               lin.camera_matrix.copy(), np.zeros(5), flags=flags)
-        cams.append(Camera(k, np.ravel(d)[:5]))
-        poses.append(Pose(np.ravel(rv[0]), np.ravel(tv[0])))
+        cams.append(CameraModel.from_opencv(k, np.ravel(d)[:5]))
+        poses.append(RigidTransform(np.ravel(rv[0]), np.ravel(tv[0])))
     l, r = _common(left, right)
     out = cv2.stereoCalibrateExtended([l.object_mm.astype(np.float32)], [l.image_px.astype(np.float32).reshape(-1, 1, 2)],
                                       [r.image_px.astype(np.float32).reshape(-1, 1, 2)],
@@ -141,11 +142,11 @@ def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: 
     rms, k1, d1, k2, d2, rot, t = out[:7]
     rvecs, tvecs = out[9], out[10]
     ms = 1e3 * (time.process_time() - t0)
-    cams = [Camera(k1, np.ravel(d1)[:5]), Camera(k2, np.ravel(d2)[:5])]
-    return _score(cams, rot, np.ravel(t), Pose(np.ravel(rvecs[0]), np.ravel(tvecs[0])), rms, truth, left, right, ms)
+    cams = [CameraModel.from_opencv(k1, np.ravel(d1)[:5]), CameraModel.from_opencv(k2, np.ravel(d2)[:5])]
+    return _score(cams, rot, np.ravel(t), RigidTransform(np.ravel(rvecs[0]), np.ravel(tvecs[0])), rms, truth, left, right, ms)
 
 
-def _linear_errors(cs: CornerSet, size: tuple[int, int], cam: Camera) -> dict:
+def _linear_errors(cs: CornerSet, size: tuple[int, int], cam: CameraModel) -> dict:
     out = {}
     for m in ("tsai", "dlt"):
         try:

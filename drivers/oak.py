@@ -15,13 +15,13 @@ from __future__ import annotations
 
 import datetime
 import time
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
 from edgecal.drivers.base import Frame, StereoFrame, StereoSource
 from edgecal.drivers.spec import SourceSpec
+
+from edgecal.camera import CameraModel, StereoRig
 from edgecal.errors import DeviceError
 
 DEFAULT_SIZE = (640, 400)
@@ -42,31 +42,25 @@ def _ns(td: datetime.timedelta) -> int:
     return (td.days * 86_400 + td.seconds) * 1_000_000_000 + td.microseconds * 1000
 
 
-@dataclass
-class FactoryCalibration:
-    """The OAK's stored stereo calibration at ``image_size`` ([width, height]); R, T map left to right.
-
-    ``X_right = R X_left + T_m`` (OpenCV's stereoCalibrate convention, metres) as in docs/conventions.md.
-    """
-
-    image_size: tuple[int, int]
-    camera_matrix_left: np.ndarray
-    dist_left: np.ndarray
-    camera_matrix_right: np.ndarray
-    dist_right: np.ndarray
-    R: np.ndarray
-    T_m: np.ndarray
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain lists, for YAML/JSON."""
-        return {"image_size": list(self.image_size),
-                "camera_matrix_left": self.camera_matrix_left.tolist(), "dist_left": self.dist_left.tolist(),
-                "camera_matrix_right": self.camera_matrix_right.tolist(), "dist_right": self.dist_right.tolist(),
-                "R": self.R.tolist(), "T_m": self.T_m.tolist()}
+def _lens(dai: Any, calib: Any, socket: Any, coeffs: np.ndarray) -> tuple[str, np.ndarray]:
+    """edgecal's lens model and parameters of one DepthAI camera (its Perspective or Fisheye model)."""
+    try:
+        model = calib.getDistortionModel(socket)
+    except RuntimeError:
+        model = dai.CameraModel.Perspective
+    if model == dai.CameraModel.Fisheye:
+        return "fisheye", coeffs[:4]
+    if model != dai.CameraModel.Perspective:
+        raise DeviceError(f"the device's {socket} lens model {model} has no edgecal equivalent "
+                          "(radtan, rational, fisheye)")
+    # 14 coefficients k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty: OpenCV's rational model when k4..k6 are used
+    if np.any(coeffs[8:] != 0):
+        raise DeviceError(f"the device's {socket} calibration uses thin-prism/tilt terms edgecal does not model")
+    return ("rational", coeffs[:8]) if np.any(coeffs[5:8] != 0) else ("radtan", coeffs[:5])
 
 
-def factory_calibration(calib: Any, width: int, height: int) -> FactoryCalibration:
-    """Convert a depthai.CalibrationHandler to edgecal's stereo convention at ``width`` x ``height``.
+def factory_calibration(calib: Any, width: int, height: int) -> StereoRig:
+    """Convert a depthai.CalibrationHandler to edgecal's StereoRig at ``width`` x ``height``.
 
     DepthAI rescales the intrinsics to the requested size; its extrinsics are in centimetres and map
     points from the source camera (left, CAM_B) into the destination camera (right, CAM_C).
@@ -81,8 +75,11 @@ def factory_calibration(calib: Any, width: int, height: int) -> FactoryCalibrati
         m = np.array(calib.getCameraExtrinsics(left, right), dtype=np.float64)
     except RuntimeError as exc:
         raise DeviceError(f"the device's factory calibration is incomplete ({exc})") from None
-    # DepthAI stores 14 coefficients (k1 k2 p1 p2 k3 k4 k5 k6 s1..s4 tx ty); the first five are OpenCV's.
-    return FactoryCalibration((width, height), k_l, d_l[:5], k_r, d_r[:5], m[:3, :3], m[:3, 3] / 100.0)
+    cams = []
+    for k, d, socket in ((k_l, d_l, left), (k_r, d_r, right)):
+        lens, params = _lens(dai, calib, socket, d)
+        cams.append(CameraModel.from_opencv(k, params, (width, height), lens))
+    return StereoRig(cams[0], cams[1], m[:3, :3], m[:3, 3] / 100.0)
 
 
 class OakStereoSource(StereoSource):
@@ -140,7 +137,7 @@ class OakStereoSource(StereoSource):
         p.start()
         self._pipeline = p
 
-    def calibration(self) -> FactoryCalibration:
+    def calibration(self) -> StereoRig:
         """The device's factory stereo calibration at the streamed size."""
         if self._device is None:
             raise DeviceError(f"{self.uri}: not open")

@@ -4,7 +4,7 @@ import numpy as np
 
 from edgecal.calibration.assign import assign, assign_stereo, rotate_ids, symmetry_warnings
 from edgecal.calibration.simulate import box_target, project_target, stereo_truth
-from edgecal.calibration.types import Pose
+from edgecal.calibration.types import RigidTransform
 from edgecal.detection.types import Detection
 from edgecal.targets import Board, Target
 
@@ -67,7 +67,7 @@ def test_symmetric_target_warns_and_names_a_board():
 def test_stereo_assignment_labels_both_images_alike_on_a_symmetric_target():
     t = box_target(inner_corners=(4, 4), square_mm=18.0)
     cl, cr, pl, rig = stereo_truth()
-    pr = Pose.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
+    pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     left, right = project_target(t, cl, pl, SIZE), project_target(t, cr, pr, SIZE)
     a_l, a_r = assign_stereo(_detections(left, t), _detections(right, t), t)
     # whichever symmetric labelling the left gets, the right must use the same one for the same corners

@@ -43,7 +43,7 @@ def test_box_stereo_end_to_end(box_pair, tmp_path, capsys):
     k_true = np.array(truth["left"]["K"])
     assert abs(rig.cameras[0].camera_matrix[0, 0] / k_true[0, 0] - 1) < 0.01
     t_true = np.array(truth["T_right_left_mm"]) * 1e-3
-    assert np.linalg.norm(rig.translation_m - t_true) < 1e-3  # within 1 mm
+    assert np.linalg.norm(rig.stereo.t_right_left_m - t_true) < 1e-3  # within 1 mm
     for name in ("overlay_left.png", "overlay_right.png", "residual_histogram.png", "per_board_error.png",
                  "summary.txt"):
         assert (tmp_path / "report" / name).is_file()
@@ -127,4 +127,4 @@ def test_planar_stereo_cli_on_bouguet_pairs(tmp_path, capsys):
     assert rc == 0, capsys.readouterr()
     rig = load_rig(out)
     assert abs(rig.cameras[0].camera_matrix[0, 0] - 533.0) < 15.0
-    assert abs(np.linalg.norm(rig.translation_m) - 0.0998) < 0.002
+    assert abs(np.linalg.norm(rig.stereo.t_right_left_m) - 0.0998) < 0.002

@@ -9,7 +9,7 @@ from edgecal.calibration.io import camera_info_paths, load_rig, write_calibratio
 from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.stereo import calibrate_box_stereo
-from edgecal.calibration.types import Pose
+from edgecal.calibration.types import RigidTransform
 from edgecal.errors import ConfigError, InputError
 
 SIZE = (640, 480)
@@ -18,7 +18,7 @@ SIZE = (640, 480)
 @pytest.fixture(scope="module")
 def stereo_cal():
     cl, cr, pl, rig = stereo_truth()
-    pr = Pose.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
+    pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     rng = np.random.default_rng(1)
     t = box_target()
     return calibrate_box_stereo(project_target(t, cl, pl, SIZE, 0.1, rng), project_target(t, cr, pr, SIZE, 0.1, rng), SIZE)
@@ -39,7 +39,7 @@ def test_rig_yaml_round_trip_with_opencv(tmp_path, stereo_cal):
     fs.release()
     rig = load_rig(out)
     assert rig.is_stereo and rig.image_size == SIZE
-    np.testing.assert_allclose(rig.translation_m, stereo_cal.translation_mm * 1e-3)
+    np.testing.assert_allclose(rig.stereo.t_right_left_m, stereo_cal.translation_mm * 1e-3)
     np.testing.assert_allclose(rig.translation_std_m, stereo_cal.translation_std_mm * 1e-3)
     np.testing.assert_allclose(rig.cameras[1].camera_matrix, stereo_cal.cameras[1].camera_matrix)
     # Q from the file reprojects disparity to metres: Q[3, 2] = -1 / Tx with Tx in metres
@@ -78,7 +78,7 @@ def test_mono_file(tmp_path):
     assert fs.getNode("camera_matrix").mat().shape == (3, 3) and fs.getNode("R").empty()
     fs.release()
     rig = load_rig(out)
-    assert not rig.is_stereo and rig.rotation is None
+    assert not rig.is_stereo and rig.stereo is None
     assert (tmp_path / "cam.camera_info.yaml").is_file()
 
 

@@ -8,7 +8,7 @@ from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.dlt import calibrate_dlt, decompose_projection
 from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.tsai import calibrate_tsai
-from edgecal.calibration.types import Camera
+from edgecal.camera import CameraModel
 
 SIZE = (640, 480)
 
@@ -44,7 +44,7 @@ def test_tsai_recovers_camera_when_principal_point_is_centred():
     cam0, pose, _ = _view(dist=(-0.1, 0, 0, 0, 0))
     k = cam0.camera_matrix.copy()
     k[0, 2], k[1, 2] = (SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2  # Tsai assumes the centre
-    cam = Camera(k, np.array([-0.1, 0, 0, 0, 0.0]))
+    cam = CameraModel.from_opencv(k, np.array([-0.1, 0, 0, 0, 0.0]))
     cs = project_target(box_target(), cam, pose, SIZE)
     lin = calibrate_tsai(cs.object_mm, cs.image_px, SIZE)
     np.testing.assert_allclose(lin.camera_matrix, k, rtol=1e-6)

@@ -9,14 +9,15 @@ from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.refine import Observation, RefineOptions, refine
 from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.stereo import calibrate_box_stereo
-from edgecal.calibration.types import Camera, CornerSet, Pose
+from edgecal.calibration.types import CornerSet, RigidTransform
+from edgecal.camera import CameraModel
 
 SIZE = (640, 480)
 
 
 def _stereo(noise, seed=0):
     cl, cr, pl, rig = stereo_truth()
-    pr = Pose.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
+    pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     rng = np.random.default_rng(seed)
     t = box_target()
     return (cl, cr, pl, rig), project_target(t, cl, pl, SIZE, noise, rng), project_target(t, cr, pr, SIZE, noise, rng)
@@ -63,8 +64,8 @@ def test_too_few_corners_for_the_unknowns():
     _, left, _ = _stereo(0.0)
     lin = calibrate_dlt(left.object_mm, left.image_px)
     with pytest.raises(DegenerateInput, match="more corners"):
-        refine([Observation(0, 0, left.object_mm[:6], left.image_px[:6])], [Camera(lin.camera_matrix, np.zeros(5))],
-               [Pose.from_rt(lin.rotation, lin.translation)])
+        refine([Observation(0, 0, left.object_mm[:6], left.image_px[:6])], [CameraModel.from_opencv(lin.camera_matrix, np.zeros(5))],
+               [RigidTransform.from_rt(lin.rotation, lin.translation)])
 
 
 def test_monte_carlo_reported_std_matches_spread():
@@ -78,8 +79,8 @@ def test_monte_carlo_reported_std_matches_spread():
     values, stds = [], []
     for _ in range(100):
         img = exact.image_px + rng.normal(0.0, 0.2, exact.image_px.shape)
-        res = refine([Observation(0, 0, exact.object_mm, img)], [Camera(lin.camera_matrix, np.zeros(5))],
-                     [Pose.from_rt(lin.rotation, lin.translation)], options=opts)
+        res = refine([Observation(0, 0, exact.object_mm, img)], [CameraModel.from_opencv(lin.camera_matrix, np.zeros(5))],
+                     [RigidTransform.from_rt(lin.rotation, lin.translation)], options=opts)
         values.append(res.values)
         stds.append(res.std)
     spread = np.std(values, axis=0)
@@ -96,12 +97,12 @@ def test_monte_carlo_reported_std_matches_spread():
 def test_monte_carlo_stereo_baseline_std_matches_spread():
     """The reported σ of the left->right translation matches its spread over noisy trials."""
     cl, cr, pl, rig = stereo_truth()
-    pr = Pose.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
+    pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     t = box_target(inner_corners=(3, 4), square_mm=20.0)
     el, er = project_target(t, cl, pl, SIZE), project_target(t, cr, pr, SIZE)
     rng = np.random.default_rng(7)
     opts = RefineOptions(distortion="k1", outlier_sigmas=50.0)
-    start = [Camera(cl.camera_matrix, np.zeros(5)), Camera(cr.camera_matrix, np.zeros(5))]
+    start = [CameraModel.from_opencv(c.camera_matrix, np.zeros(5)) for c in (cl, cr)]
     ts, stds = [], []
     for _ in range(60):
         obs = [Observation(0, 0, el.object_mm, el.image_px + rng.normal(0, 0.2, el.image_px.shape)),

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from edgecal.drivers import open_source
+
 from edgecal.errors import DeviceError
 
 
@@ -107,7 +107,6 @@ def test_depthai_absent_device(depthai_env: None) -> None:
 
 def test_depthai_factory_calibration_conversion(depthai_env: None) -> None:
     import depthai as dai
-
     from edgecal.drivers.oak import factory_calibration
     calib = dai.CalibrationHandler()
     k = [[800.0, 0.0, 640.0], [0.0, 800.0, 400.0], [0.0, 0.0, 1.0]]
@@ -117,9 +116,9 @@ def test_depthai_factory_calibration_conversion(depthai_env: None) -> None:
         calib.setDistortionCoefficients(socket, [0.1, -0.2, 0.001, 0.002, 0.03] + [0.0] * 9)
     r = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
     calib.setCameraExtrinsics(dai.CameraBoardSocket.CAM_B, dai.CameraBoardSocket.CAM_C, r, [-7.5, 0.0, 0.0])
-    fc = factory_calibration(calib, 640, 400)
-    assert fc.image_size == (640, 400)
-    assert fc.camera_matrix_left[0, 0] == pytest.approx(400.0) and fc.camera_matrix_left[0, 2] == pytest.approx(320, abs=1)
-    assert fc.dist_right.tolist() == pytest.approx([0.1, -0.2, 0.001, 0.002, 0.03])
-    assert fc.T_m.tolist() == pytest.approx([-0.075, 0.0, 0.0])   # centimetres -> metres, left -> right
-    assert np.allclose(fc.R, np.eye(3))
+    rig = factory_calibration(calib, 640, 400)
+    assert rig.image_size == (640, 400) and rig.left.lens == "radtan"
+    assert rig.left.fx == pytest.approx(400.0) and rig.left.cx == pytest.approx(320, abs=1)
+    assert rig.right.dist_coeffs.tolist() == pytest.approx([0.1, -0.2, 0.001, 0.002, 0.03])
+    assert rig.t_right_left_m.tolist() == pytest.approx([-0.075, 0.0, 0.0])   # centimetres -> metres, left -> right
+    assert np.allclose(rig.R_right_left, np.eye(3))

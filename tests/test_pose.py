@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from edgecal.camera import CameraModel, StereoRig, project
 from edgecal.detection.types import Detection
-from edgecal.pose import (PoseSettings, QualityBounds, StereoCameras, estimate_pose, fit_rigid,
-                          triangulate_pixels)
+from edgecal.geometry import triangulate_pixels
+from edgecal.pose import PoseSettings, QualityBounds, estimate_pose, fit_rigid
 from edgecal.targets import Board, Target
 
 
@@ -22,14 +23,20 @@ def robot_target() -> Target:
     ))
 
 
-def stereo_cams(distorted: bool = True) -> StereoCameras:
-    K = np.array([[1100.0, 0, 640.0], [0, 1100.0, 400.0], [0, 0, 1]])
-    K2 = np.array([[1090.0, 0, 630.0], [0, 1092.0, 405.0], [0, 0, 1]])
-    d1 = np.array([-0.12, 0.08, 0.001, -0.0005, 0.0]) if distorted else np.zeros(5)
-    d2 = np.array([-0.10, 0.05, -0.001, 0.0005, 0.0]) if distorted else np.zeros(5)
+def stereo_cams(distorted: bool | str = True) -> StereoRig:
+    """A 1280x800 rig 12 cm wide; ``distorted`` True (radtan), False (none) or "fisheye" (a 160 deg lens)."""
     R = Rotation.from_euler("y", -4, degrees=True).as_matrix()
     T = np.array([-0.12, 0.001, 0.002])
-    return StereoCameras(K, d1, K2, d2, R, T, (1280, 800))
+    if distorted == "fisheye":
+        f = 640 / np.radians(80.0)
+        left = CameraModel(f, f, 640.0, 400.0, "fisheye", np.array([0.02, -0.01, 0.002, 0.0]), (1280, 800))
+        right = CameraModel(f * 1.01, f * 1.01, 630.0, 405.0, "fisheye", np.array([0.018, -0.008, 0.001, 0.0]),
+                            (1280, 800))
+        return StereoRig(left, right, R, T)
+    d1 = np.array([-0.12, 0.08, 0.001, -0.0005, 0.0]) if distorted else np.zeros(5)
+    d2 = np.array([-0.10, 0.05, -0.001, 0.0005, 0.0]) if distorted else np.zeros(5)
+    return StereoRig(CameraModel(1100.0, 1100.0, 640.0, 400.0, "radtan", d1, (1280, 800)),
+                     CameraModel(1090.0, 1092.0, 630.0, 405.0, "radtan", d2, (1280, 800)), R, T)
 
 
 def true_pose() -> tuple[np.ndarray, np.ndarray]:
@@ -37,22 +44,19 @@ def true_pose() -> tuple[np.ndarray, np.ndarray]:
     return R, np.array([-0.05, 0.03, 1.0])
 
 
-def render_detections(target: Target, cams: StereoCameras, R: np.ndarray, t: np.ndarray, noise_px: float = 0.0,
+def render_detections(target: Target, cams: StereoRig, R: np.ndarray, t: np.ndarray, noise_px: float = 0.0,
                       rng: np.random.Generator | None = None) -> tuple[list[Detection], list[Detection]]:
     """Exact projections of every corner facing each camera (plus Gaussian noise) as Detections."""
     out: tuple[list[Detection], list[Detection]] = ([], [])
-    rvec_rl, _ = cv2.Rodrigues(cams.R)
     for b in target.boards:
         X = b.target_points_mm() / 1000.0
-        for side, (K, d) in enumerate(((cams.camera_matrix_left, cams.dist_coeffs_left),
-                                       (cams.camera_matrix_right, cams.dist_coeffs_right))):
-            Rc = R if side == 0 else cams.R @ R
-            tc = t if side == 0 else cams.R @ t + cams.T
+        for side, cam in enumerate(cams.cameras):
+            Rc = R if side == 0 else cams.R_right_left @ R
+            tc = t if side == 0 else cams.R_right_left @ t + cams.t_right_left_m
             centre = Rc @ X.mean(axis=0) + tc
             if (Rc @ b.normal) @ centre >= 0:      # board faces away from this camera
                 continue
-            px, _ = cv2.projectPoints(X, cv2.Rodrigues(Rc)[0], tc, K, d)
-            px = px.reshape(-1, 2)
+            px = project(X @ Rc.T + tc, cam)
             if noise_px:
                 px = px + rng.normal(0, noise_px, px.shape)
             out[side].append(Detection(b.name, px, b.ids(), np.ones(len(px)), (b.cols, b.rows)))
@@ -80,15 +84,16 @@ def test_triangulation_is_exact_on_exact_projections() -> None:
     cams = stereo_cams()
     rng = np.random.default_rng(2)
     X = rng.uniform([-0.3, -0.2, 0.8], [0.3, 0.2, 1.5], size=(50, 3))
-    pl, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cams.camera_matrix_left, cams.dist_coeffs_left)
-    pr, _ = cv2.projectPoints(X, cv2.Rodrigues(cams.R)[0], cams.T, cams.camera_matrix_right, cams.dist_coeffs_right)
+    pl, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cams.left.camera_matrix, cams.left.dist_coeffs)
+    pr, _ = cv2.projectPoints(X, cv2.Rodrigues(cams.R_right_left)[0], cams.t_right_left_m, cams.right.camera_matrix,
+                              cams.right.dist_coeffs)
     for optimal in (True, False):
         Xt = triangulate_pixels(cams, pl.reshape(-1, 2), pr.reshape(-1, 2), optimal=optimal)
         assert np.abs(Xt - X).max() < 1e-7
 
 
-@pytest.mark.parametrize("distorted", [False, True])
-def test_stereo_pose_is_exact_on_exact_projections(distorted: bool) -> None:
+@pytest.mark.parametrize("distorted", [False, True, "fisheye"])
+def test_stereo_pose_is_exact_on_exact_projections(distorted: bool | str) -> None:
     target, cams = robot_target(), stereo_cams(distorted)
     R, t = true_pose()
     left, right = render_detections(target, cams, R, t)

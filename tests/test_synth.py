@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from edgecal import cli
-from edgecal.synth.camera import CameraModel, look_at, rotation_about, undistort_normalized
+from edgecal.geometry import look_at, rotation_about
+from edgecal.synth.camera import CameraModel, undistort_normalized
 from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
 from edgecal.synth.render import (Panel, board_panel_extent, panels_from_target, render_radiance,
                                   render_radiance_reference)

@@ -6,7 +6,7 @@ board via OpenCV), assign (detections -> target boards), io (rig.yaml, camera_in
 report (overlays and summary), settings and acceptance (configs/calibration.yaml).
 """
 
-from edgecal.calibration.io import Rig, load_rig, write_calibration
-from edgecal.calibration.types import Calibration, Camera, CornerSet, Pose
+from edgecal.calibration.io import RigFile, load_rig, write_calibration
+from edgecal.calibration.types import Calibration, CornerSet, RigidTransform
 
-__all__ = ["Calibration", "Camera", "CornerSet", "Pose", "Rig", "load_rig", "write_calibration"]
+__all__ = ["Calibration", "CornerSet", "RigidTransform", "RigFile", "load_rig", "write_calibration"]

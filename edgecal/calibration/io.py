@@ -1,10 +1,12 @@
 """Writing and reading calibration files: rig.yaml (cv2.FileStorage) and ROS camera_info YAML.
 
-rig.yaml nodes (stereo): image_size [w, h], camera_matrix_left, dist_coeffs_left, camera_matrix_right,
-dist_coeffs_right, R, T (metres; X_right = R X_left + T), and their standard deviations
-(intrinsics_std_left/right: fx fy cx cy k1 k2 p1 p2 k3, .Nan where the term was fixed; R_std_rad, the
-std of R's rotation vector; T_std_m), plus the rectification R1 R2 P1 P2 Q and quality figures.
-A single camera writes camera_matrix, dist_coeffs and intrinsics_std instead. The ``provenance`` map says
+rig.yaml nodes (stereo): image_size [w, h], distortion_model_left/right (the lens model: radtan,
+rational or fisheye, docs/conventions.md; radtan when absent, as in files before lens models),
+camera_matrix_left, dist_coeffs_left, camera_matrix_right, dist_coeffs_right, R, T (metres;
+X_right = R X_left + T), and their standard deviations (intrinsics_std_left/right: fx fy cx cy and the
+lens model's parameters in order, .Nan where the term was fixed; R_std_rad, the std of R's rotation
+vector; T_std_m), plus the rectification R1 R2 P1 P2 Q and quality figures. A single camera writes
+distortion_model, camera_matrix, dist_coeffs and intrinsics_std instead. The ``provenance`` map says
 what produced the file: target and boards, square_mm, the view files, the corners file, the edgecal
 version, created (UTC ISO 8601) and the settings.
 
@@ -22,8 +24,8 @@ import cv2
 import numpy as np
 import yaml
 
-from edgecal.calibration.refine import INTRINSIC_NAMES
-from edgecal.calibration.types import Calibration, Camera
+from edgecal.calibration.types import Calibration
+from edgecal.camera import LENS_PARAMS, CameraModel, StereoRig
 from edgecal.errors import ConfigError, InputError
 from edgecal.fileio import check_outputs, write_atomic_set
 
@@ -36,8 +38,8 @@ def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
     return [p.with_name(f"{stem}.{n}.camera_info.yaml" if n else f"{stem}.camera_info.yaml") for n in names]
 
 
-def _std_row(std: dict[str, float]) -> np.ndarray:
-    return np.array([[std.get(n, np.nan) for n in INTRINSIC_NAMES]], dtype=np.float64)
+def _std_row(std: dict[str, float], cam: CameraModel) -> np.ndarray:
+    return np.array([[std.get(n, np.nan) for n in cam.intrinsic_names]], dtype=np.float64)
 
 
 def _write_node(fs: cv2.FileStorage, name: str, value: object) -> None:
@@ -86,10 +88,11 @@ def rig_yaml(cal: Calibration, provenance: dict | None = None) -> str:
     fs.write("rms_px", float(cal.rms_px))
     suffixes = ("_left", "_right") if cal.is_stereo else ("",)
     for cam, std, sfx in zip(cal.cameras, cal.camera_std, suffixes):
+        fs.write("distortion_model" + sfx, cam.lens)
         fs.write("camera_matrix" + sfx, cam.camera_matrix)
         fs.write("dist_coeffs" + sfx, np.asarray(cam.dist_coeffs, dtype=np.float64).reshape(1, -1))
-        fs.writeComment("std order: fx fy cx cy k1 k2 p1 p2 k3 (.Nan = fixed)")
-        fs.write("intrinsics_std" + sfx, _std_row(std))
+        fs.writeComment(f"std order: {' '.join(cam.intrinsic_names)} (.Nan = fixed)")
+        fs.write("intrinsics_std" + sfx, _std_row(std, cam))
     if cal.is_stereo:
         fs.write("R", cal.rotation)
         fs.write("T", np.ravel(cal.translation_mm).reshape(3, 1) * 1e-3)
@@ -140,7 +143,7 @@ def camera_info(cal: Calibration, index: int, camera_name: str | None = None) ->
         "image_height": int(cal.image_size[1]),
         "camera_name": name,
         "camera_matrix": _matrix(cam.camera_matrix),
-        "distortion_model": "plumb_bob",
+        "distortion_model": cam.ros_distortion_model,
         "distortion_coefficients": _matrix(np.asarray(cam.dist_coeffs, dtype=np.float64).reshape(1, -1)),
         "rectification_matrix": _matrix(rect),
         "projection_matrix": _matrix(proj),
@@ -168,14 +171,13 @@ def write_calibration(cal: Calibration, path: str | Path, force: bool = False, p
 
 
 @dataclass
-class Rig:
-    """A calibration read back from rig.yaml: one or two cameras and, for two, T_right_left (metres)."""
+class RigFile:
+    """What a rig.yaml holds: one or two cameras, for two the StereoRig, and the figures written with them."""
 
     image_size: tuple[int, int]
-    cameras: list[Camera]
+    cameras: list[CameraModel]
     intrinsics_std: list[dict[str, float]]
-    rotation: np.ndarray | None = None
-    translation_m: np.ndarray | None = None
+    stereo: StereoRig | None = None
     rotation_std_rad: np.ndarray | None = None
     translation_std_m: np.ndarray | None = None
     extra: dict[str, np.ndarray] = field(default_factory=dict)  # R1 R2 P1 P2 Q when present
@@ -184,10 +186,10 @@ class Rig:
     @property
     def is_stereo(self) -> bool:
         """Whether the file holds two cameras."""
-        return len(self.cameras) == 2
+        return self.stereo is not None
 
 
-def load_rig(path: str | Path) -> Rig:
+def load_rig(path: str | Path) -> RigFile:
     """Read a rig.yaml written by :func:`write_calibration` (or any file with the same OpenCV nodes).
 
     Raises InputError for a missing or unreadable file and ConfigError naming a missing or wrong node.
@@ -229,19 +231,27 @@ def load_rig(path: str | Path) -> Rig:
         sfx = ("_left", "_right") if stereo else ("",)
         cams, stds = [], []
         for s in sfx:
+            model = fs.getNode("distortion_model" + s)
+            lens = "radtan" if model.empty() else model.string()
+            if lens not in LENS_PARAMS:
+                raise ConfigError(f"{p}: node 'distortion_model{s}' is {lens[:40]!r}; known: {', '.join(LENS_PARAMS)}")
             k = node("camera_matrix" + s, (3, 3))
             d = np.ravel(node("dist_coeffs" + s, None))
-            cams.append(Camera(k, d))
-            std = node("intrinsics_std" + s, (9,), required=False)
-            stds.append({n: float(v) for n, v in zip(INTRINSIC_NAMES, std)} if std is not None else {})
-        rig = Rig((size[0], size[1]), cams, stds)
+            n_params = len(LENS_PARAMS[lens])
+            if len(d) > n_params and (lens != "radtan" or np.any(d[n_params:] != 0)):
+                raise ConfigError(f"{p}: node 'dist_coeffs{s}' has {len(d)} numbers; the {lens} model has {n_params}")
+            cam = CameraModel(k[0, 0], k[1, 1], k[0, 2], k[1, 2], lens, d[:n_params], (size[0], size[1]))
+            cams.append(cam)
+            std = node("intrinsics_std" + s, None, required=False)
+            stds.append({n: float(v) for n, v in zip(cam.intrinsic_names, np.ravel(std))} if std is not None else {})
+        rig = RigFile((size[0], size[1]), cams, stds)
         if stereo:
-            rig.rotation = node("R", (3, 3))
-            rig.translation_m = node("T", (3,))
+            rotation = node("R", (3, 3))
+            if abs(np.linalg.det(rotation) - 1) > 1e-6:
+                raise ConfigError(f"{p}: node 'R' is not a rotation matrix")
+            rig.stereo = StereoRig(cams[0], cams[1], rotation, node("T", (3,)))
             rig.rotation_std_rad = node("R_std_rad", (3,), required=False)
             rig.translation_std_m = node("T_std_m", (3,), required=False)
-            if abs(np.linalg.det(rig.rotation) - 1) > 1e-6:
-                raise ConfigError(f"{p}: node 'R' is not a rotation matrix")
             for name in ("R1", "R2", "P1", "P2", "Q"):
                 m = node(name, None, required=False)
                 if m is not None:

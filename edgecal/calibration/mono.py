@@ -12,10 +12,17 @@ import numpy as np
 
 from edgecal.calibration.checks import DegenerateInput, require_non_coplanar
 from edgecal.calibration.dlt import LinearCamera, calibrate_dlt
-from edgecal.calibration.refine import (Observation, RefineOptions, RefineResult, calibration_from_result,
-                                        observations_for, refine)
+from edgecal.calibration.refine import (
+    Observation,
+    RefineOptions,
+    RefineResult,
+    calibration_from_result,
+    observations_for,
+    refine,
+)
 from edgecal.calibration.tsai import calibrate_tsai
-from edgecal.calibration.types import Calibration, Camera, CornerSet, Pose
+from edgecal.calibration.types import Calibration, CornerSet, RigidTransform
+from edgecal.camera import CameraModel
 
 
 def linear_start(corners: CornerSet, image_size: tuple[int, int], method: str) -> LinearCamera:
@@ -28,7 +35,7 @@ def linear_start(corners: CornerSet, image_size: tuple[int, int], method: str) -
 
 
 def initialise_camera(corners: CornerSet, image_size: tuple[int, int], options: RefineOptions,
-                      name: str = "camera") -> tuple[Camera, Pose, RefineResult, dict[str, float]]:
+                      name: str = "camera") -> tuple[CameraModel, RigidTransform, RefineResult, dict[str, float]]:
     """The best refined camera and box pose from Tsai and DLT starts, and the refined RMS of each start.
 
     Raises DegenerateInput (naming the camera) when the corners cannot determine a camera.
@@ -36,15 +43,15 @@ def initialise_camera(corners: CornerSet, image_size: tuple[int, int], options: 
     require_non_coplanar(corners.object_mm, corners.image_px, what=name)
     obs = [Observation(0, 0, corners.object_mm, corners.image_px, corners.labels(name))]
     tried: dict[str, float] = {}
-    best: tuple[tuple[int, float], Camera, Pose, RefineResult, str] | None = None
+    best: tuple[tuple[int, float], CameraModel, RigidTransform, RefineResult, str] | None = None
     error: DegenerateInput | None = None
     # One rejection round is enough to compare the starts; the caller's final refinement does the rest.
     quick = replace(options, max_rounds=min(options.max_rounds, 1))
     for method in ("tsai", "dlt"):
         try:
             lin = linear_start(corners, image_size, method)
-            res = refine(obs, [Camera(lin.camera_matrix, lin.dist_coeffs)],
-                         [Pose.from_rt(lin.rotation, lin.translation)], options=quick)
+            res = refine(obs, [CameraModel.from_opencv(lin.camera_matrix, lin.dist_coeffs, image_size)],
+                         [RigidTransform.from_rt(lin.rotation, lin.translation)], options=quick)
         except DegenerateInput as exc:
             error = error or exc
             continue
@@ -70,10 +77,10 @@ def calibrate_box_mono(corners: CornerSet, image_size: tuple[int, int],
     return cal
 
 
-def relative_pose(left: Pose, right: Pose) -> Pose:
+def relative_pose(left: RigidTransform, right: RigidTransform) -> RigidTransform:
     """T_right_left from the target poses T_left_target and T_right_target."""
     r = right.rotation @ left.rotation.T
-    return Pose.from_rt(r, np.ravel(right.tvec) - r @ np.ravel(left.tvec))
+    return RigidTransform.from_rt(r, np.ravel(right.tvec) - r @ np.ravel(left.tvec))
 
 
 __all__ = ["calibrate_box_mono", "initialise_camera", "linear_start", "relative_pose"]

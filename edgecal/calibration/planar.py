@@ -1,21 +1,34 @@
 """Planar multi-view calibration (mono and stereo) from many images of one flat board.
 
-OpenCV does the solving (calibrateCamera, stereoCalibrate); edgecal checks that the views cover the
-image, rejects views that fit much worse than the others, and computes every parameter's standard
-deviation with its own refinement (refine.py) started at OpenCV's optimum.
+OpenCV starts the pinhole lenses (calibrateCamera, stereoCalibrate; radtan and rational); the fisheye
+lens starts from a per-view pose on points undistorted with a guessed equidistant focal length (the
+guess that fits best), because cv2.fisheye.calibrate fails on boards near the image rim (its
+InitExtrinsics assertion) or diverges. edgecal checks that the views cover the image, rejects views that
+fit much worse than the others, and computes the optimum and every parameter's standard deviation with
+its own refinement (refine.py).
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import cv2
 import numpy as np
 
 from edgecal.calibration.checks import DegenerateInput
-from edgecal.calibration.refine import (DISTORTION_MODELS, RefineOptions, calibration_from_result,
-                                        observations_for, refine)
+from edgecal.calibration.mono import relative_pose
+from edgecal.calibration.refine import (
+    Observation,
+    RefineOptions,
+    calibration_from_result,
+    lens_of,
+    observations_for,
+    refine,
+)
 from edgecal.calibration.settings import PlanarSettings
 from edgecal.calibration.stereo import finish_stereo
-from edgecal.calibration.types import Calibration, Camera, CornerSet, Pose
+from edgecal.calibration.types import Calibration, CornerSet, RigidTransform
+from edgecal.camera import CameraModel, project, undistort_points
 
 MIN_CORNERS_PER_VIEW = 6
 
@@ -32,16 +45,18 @@ def coverage(corners: list[CornerSet], image_size: tuple[int, int], cells: tuple
 
 
 def opencv_flags(distortion: str) -> int:
-    """calibrateCamera flags that free exactly the distortion terms of ``distortion``."""
-    free = DISTORTION_MODELS[distortion]
+    """calibrateCamera flags that free exactly the distortion terms of ``distortion`` (a radtan or rational model)."""
+    lens, free = lens_of(distortion)
+    if lens == "rational":
+        return cv2.CALIB_RATIONAL_MODEL
     flags = 0
-    if 0 not in free:
+    if "k1" not in free:
         flags |= cv2.CALIB_FIX_K1
-    if 1 not in free:
+    if "k2" not in free:
         flags |= cv2.CALIB_FIX_K2
-    if 2 not in free:
+    if "p1" not in free:
         flags |= cv2.CALIB_ZERO_TANGENT_DIST
-    if 4 not in free:
+    if "k3" not in free:
         flags |= cv2.CALIB_FIX_K3
     return flags
 
@@ -54,15 +69,66 @@ def _board_points(cs: CornerSet) -> np.ndarray:
     return obj
 
 
-def _calibrate_opencv(views: list[CornerSet], image_size: tuple[int, int], flags: int):
+def _per_view_rms(views: list[CornerSet], cam: CameraModel, poses: list[RigidTransform]) -> np.ndarray:
+    out = []
+    for v, p in zip(views, poses):
+        r = project(p.apply(v.object_mm), cam) - v.image_px
+        out.append(float(np.sqrt(np.nanmean(np.sum(r ** 2, axis=1)))) if np.isfinite(r).any() else np.inf)
+    return np.array(out)
+
+
+def _calibrate_opencv(views: list[CornerSet], image_size: tuple[int, int], distortion: str
+                      ) -> tuple[CameraModel, list[RigidTransform], np.ndarray]:
     obj = [_board_points(v) for v in views]
     img = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in views]
-    rms, k, d, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), None, None, flags=flags)
-    per_view = []
-    for o, i, r, t in zip(obj, img, rvecs, tvecs):
-        p, _ = cv2.projectPoints(o, r, t, k, d)
-        per_view.append(float(np.sqrt(np.mean(np.sum((p - i).reshape(-1, 2) ** 2, axis=1)))))
-    return k, np.ravel(d)[:5], rvecs, tvecs, np.array(per_view)
+    _, k, d, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(image_size), None, None, flags=opencv_flags(distortion))
+    cam = CameraModel.from_opencv(k, np.ravel(d)[:8], image_size, lens_of(distortion)[0])
+    poses = [RigidTransform(np.ravel(r), np.ravel(t)) for r, t in zip(rvecs, tvecs)]
+    return cam, poses, _per_view_rms(views, cam, poses)
+
+
+# Equidistant focal lengths tried for a fisheye start: the image half-width spans 25..125 degrees.
+_FISHEYE_HALF_FOV_DEG = np.linspace(25.0, 125.0, 21)
+
+
+def _view_pose(view: CornerSet, cam: CameraModel) -> RigidTransform | None:
+    """The board pose in a camera from one view, by PnP on the corners undistorted with ``cam``."""
+    xn = undistort_points(view.image_px, cam)
+    ok = np.all(np.isfinite(xn), axis=1)
+    if ok.sum() < 4:
+        return None
+    found, r, t = cv2.solvePnP(view.object_mm[ok], xn[ok], np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+    return RigidTransform(np.ravel(r), np.ravel(t)) if found else None
+
+
+def _calibrate_fisheye(views: list[CornerSet], image_size: tuple[int, int], distortion: str
+                       ) -> tuple[CameraModel, list[RigidTransform], np.ndarray]:
+    """A fisheye camera and view poses from a robust start: the best equidistant focal guess, then refine."""
+    w, h = image_size
+    best: tuple[float, CameraModel, list[RigidTransform]] | None = None
+    for half_fov in _FISHEYE_HALF_FOV_DEG:
+        f = 0.5 * w / np.radians(half_fov)
+        cam = CameraModel(f, f, (w - 1) / 2.0, (h - 1) / 2.0, "fisheye", np.zeros(4), image_size)
+        poses = [_view_pose(v, cam) for v in views]
+        if any(p is None for p in poses):
+            continue
+        score = float(np.median(_per_view_rms(views, cam, poses)))
+        if best is None or score < best[0]:
+            best = (score, cam, poses)
+    if best is None:
+        raise DegenerateInput("no fisheye start fits the views (too few corners per view?)")
+    _, cam, poses = best
+    obs = [Observation(0, i, v.object_mm, v.image_px) for i, v in enumerate(views)]
+    res = refine(obs, [cam], poses, options=replace(RefineOptions(distortion=distortion), max_rounds=1))
+    return res.cameras[0], res.view_poses, _per_view_rms(views, res.cameras[0], res.view_poses)
+
+
+def _calibrate_start(views: list[CornerSet], image_size: tuple[int, int], distortion: str
+                     ) -> tuple[CameraModel, list[RigidTransform], np.ndarray]:
+    """A camera, view poses and per-view RMS to start the refinement from."""
+    if lens_of(distortion)[0] == "fisheye":
+        return _calibrate_fisheye(views, image_size, distortion)
+    return _calibrate_opencv(views, image_size, distortion)
 
 
 def _usable(views: list[CornerSet]) -> list[int]:
@@ -116,11 +182,10 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
     if len(index) < planar.min_views:
         raise DegenerateInput(f"the board was found in only {len(index)} {what}; planar calibration needs at least "
                               f"{planar.min_views} (tilt the board differently in each)")
-    flags = opencv_flags(options.distortion)
     # Reject views that fit far worse than the rest (a blurred or misdetected image), then solve again.
     for _ in range(2):
-        per_cam = [_calibrate_opencv(v, image_size, flags) for v in cams_views]
-        worst = np.max([pc[4] for pc in per_cam], axis=0)
+        per_cam = [_calibrate_start(v, image_size, options.distortion) for v in cams_views]
+        worst = np.max([pc[2] for pc in per_cam], axis=0)
         limit = planar.max_view_rms_factor * max(float(np.median(worst)), 0.05)
         bad = np.flatnonzero(worst > limit)
         if not len(bad) or len(index) - len(bad) < planar.min_views:
@@ -130,9 +195,9 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         good = [i for i in range(len(index)) if i not in set(bad)]
         cams_views = [[v[i] for i in good] for v in cams_views]
         index = [index[i] for i in good]
-    if len(per_cam[0][2]) != len(index):
+    if len(per_cam[0][1]) != len(index):
         # the last rejection round removed views: solve once more on the views that are kept
-        per_cam = [_calibrate_opencv(v, image_size, flags) for v in cams_views]
+        per_cam = [_calibrate_start(v, image_size, options.distortion) for v in cams_views]
     for c, v in enumerate(cams_views):
         cov = coverage(v, image_size)
         notes.append(f"{'left' if c == 0 else 'right' if stereo else 'camera'} coverage {100 * cov:.0f} % of the image")
@@ -140,10 +205,16 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
             notes.append(f"WARNING: the corners cover only {100 * cov:.0f} % of the image (< "
                          f"{100 * planar.min_coverage:.0f} %): distortion at the edges is extrapolated; "
                          f"add views with the board near the corners")
-    cameras = [Camera(pc[0], pc[1]) for pc in per_cam]
-    view_poses = [Pose(np.ravel(r), np.ravel(t)) for r, t in zip(per_cam[0][2], per_cam[0][3])]
-    rigs: list[Pose] = []
-    if stereo:
+    cameras = [pc[0] for pc in per_cam]
+    view_poses = per_cam[0][1]
+    rigs: list[RigidTransform] = []
+    if stereo and cameras[0].lens == "fisheye":
+        # the rig pose from each view's two board poses; the median is robust to a poorly posed view
+        rel = [relative_pose(a, b) for a, b in zip(per_cam[0][1], per_cam[1][1])]
+        rigs = [RigidTransform(np.median([np.ravel(r.rvec) for r in rel], axis=0),
+                               np.median([np.ravel(r.tvec) for r in rel], axis=0))]
+    elif stereo:
+        flags = opencv_flags(options.distortion)
         obj = [_board_points(v) for v in cams_views[0]]
         img_l = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in cams_views[0]]
         img_r = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in cams_views[1]]
@@ -151,8 +222,9 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
                                   cameras[1].camera_matrix, cameras[1].dist_coeffs, tuple(image_size),
                                   flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
         _, k1, d1, k2, d2, r, t = out[:7]
-        cameras = [Camera(k1, np.ravel(d1)[:5]), Camera(k2, np.ravel(d2)[:5])]
-        rigs = [Pose.from_rt(r, np.ravel(t))]
+        cameras = [CameraModel.from_opencv(k, np.ravel(d)[:8], image_size, cameras[0].lens)
+                   for k, d in ((k1, d1), (k2, d2))]
+        rigs = [RigidTransform.from_rt(r, np.ravel(t))]
         notes.append(f"OpenCV stereoCalibrate RMS {out[0]:.3f} px")
     corners = cams_views
     res = refine(observations_for(corners, [names[i] for i in index]), cameras, view_poses, rigs, options)

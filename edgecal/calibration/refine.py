@@ -1,38 +1,37 @@
 """Non-linear refinement of cameras and poses, robust to outliers, with parameter standard deviations.
 
 One solver serves every case: observations of a target by one or two cameras in one or more views.
-The unknowns are each camera's intrinsics (fx, fy, cx, cy and the free distortion terms), each view's
-target pose in camera 0 (``T_cam0_target``) and, for each further camera c, the rig pose
-``T_camc_cam0``. Camera c sees target points at ``R_c0 (R_v X + t_v) + t_c0``. One box image from
-each of two cameras is one view seen by two cameras; the planar multi-view case has many views.
+The unknowns are each camera's intrinsics (fx, fy, cx, cy and the free parameters of its lens model,
+edgecal.camera.DISTORTION_MODELS), each view's target pose in camera 0 (``T_cam0_target``) and, for
+each further camera c, the rig pose ``T_camc_cam0``. Camera c sees target points at
+``R_c0 (R_v X + t_v) + t_c0``. One box image from each of two cameras is one view seen by two cameras;
+the planar multi-view case has many views.
 
-The Jacobian is analytic (cv2.projectPoints and cv2.composeRT give their derivatives); the solver is
-Levenberg-Marquardt. After a robust (Huber) fit, corners whose residual is far outside the noise are dropped and reported, the rest is
-fitted with plain least squares, and the covariance is s^2 (J^T J)^-1 with s^2 = SSR / (m - n).
+The solver is scipy's least_squares (trust-region reflective) with an explicit sparse Jacobian: each
+residual depends only on its camera's intrinsics, its view's pose and its rig pose, so 300 stereo views
+give a Jacobian that is 99 % zeros (a dense one of 900 views would need ~8 GB). The derivatives are
+analytic (edgecal.camera.project's gradients and cv2.Rodrigues'). After a robust (Huber) fit, corners
+whose residual is far outside the noise are dropped and reported, the rest is fitted with plain least
+squares, and the covariance is s^2 (J^T J)^-1 with s^2 = SSR / (m - n).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Callable
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+import scipy.sparse
+from scipy.optimize import least_squares
 
 from edgecal.calibration.checks import DegenerateInput
-from edgecal.calibration.types import CAMERA_NAMES, Calibration, Camera, CornerSet, Pose
+from edgecal.calibration.types import CAMERA_NAMES, Calibration, CornerSet, RigidTransform
+from edgecal.camera import DISTORTION_MODELS, LENS_PARAMS, CameraModel, project
 
-INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
-# Which of k1 k2 p1 p2 k3 are free for each distortion model name.
-DISTORTION_MODELS = {
-    "none": (),
-    "k1": (0,),
-    "k1k2": (0, 1),
-    "k1k2k3": (0, 1, 4),
-    "k1k2p1p2": (0, 1, 2, 3),
-    "k1k2p1p2k3": (0, 1, 2, 3, 4),
-}
+# Relative tolerances of least_squares: far below the 1e-4 relative uncertainty of a good calibration.
+_TOL = 1e-10
+_MAX_NFEV = 200
 
 
 @dataclass(frozen=True)
@@ -48,7 +47,7 @@ class Observation:
 
 @dataclass(frozen=True)
 class RefineOptions:
-    """How to refine: distortion model, robust loss, outlier rejection."""
+    """How to refine: distortion model (a key of DISTORTION_MODELS), robust loss, outlier rejection."""
 
     distortion: str = "k1k2"
     loss_scale_px: float = 1.0       # Huber: residuals above this count linearly
@@ -62,12 +61,12 @@ class RefineOptions:
 class RefineResult:
     """The refined cameras and poses, their standard deviations, residuals and dropped corners."""
 
-    cameras: list[Camera]
-    view_poses: list[Pose]
-    rig_poses: list[Pose]            # rig_poses[c - 1] is T_camc_cam0
+    cameras: list[CameraModel]
+    view_poses: list[RigidTransform]
+    rig_poses: list[RigidTransform]  # rig_poses[c - 1] is T_camc_cam0
     names: list[str]                 # name of every parameter, e.g. "cam0.fx", "view0.tz", "rig1.rx"
     values: np.ndarray
-    std: np.ndarray                  # standard deviation of every parameter (nan when fixed, inf if undetermined)
+    std: np.ndarray                  # standard deviation of every parameter (inf if undetermined)
     covariance: np.ndarray
     rms_px: float
     sigma_px: float                  # noise estimate sqrt(SSR / (m - n)) per coordinate
@@ -75,167 +74,193 @@ class RefineResult:
     inliers: list[np.ndarray]        # per observation, (N,) bool
     dropped: list[str] = field(default_factory=list)
     rank_deficient: bool = False
+    undetermined: list[str] = field(default_factory=list)  # parameters in the Jacobian's null space
 
     def std_of(self, name: str) -> float:
         """The standard deviation of the parameter ``name`` (nan if it was not estimated)."""
         return float(self.std[self.names.index(name)]) if name in self.names else float("nan")
 
 
+def lens_of(distortion: str) -> tuple[str, tuple[str, ...]]:
+    """(lens model, free parameters) of a distortion option; DegenerateInput listing the known ones if unknown."""
+    if distortion not in DISTORTION_MODELS:
+        raise DegenerateInput(f"distortion model {distortion!r} unknown (one of {', '.join(DISTORTION_MODELS)})")
+    return DISTORTION_MODELS[distortion]
+
+
+def as_lens(camera: CameraModel, distortion: str) -> CameraModel:
+    """``camera`` in the lens model of ``distortion``, the parameters outside its free set 0.
+
+    radtan and rational share k1 k2 p1 p2 k3; between them and fisheye nothing carries over (a start with
+    no distortion is close enough near the axis, where both are the pinhole).
+    """
+    lens, free = lens_of(distortion)
+    if camera.lens == lens:
+        params = np.array(camera.params)
+    elif {camera.lens, lens} == {"radtan", "rational"}:
+        params = np.r_[camera.params[:5], np.zeros(3)][:len(LENS_PARAMS[lens])]
+    else:
+        params = np.zeros(len(LENS_PARAMS[lens]))
+    params[[i for i, n in enumerate(LENS_PARAMS[lens]) if n not in free]] = 0.0
+    return camera.with_lens(lens, params)
+
+
 class _Layout:
     """Where each unknown sits in the parameter vector."""
 
-    def __init__(self, n_cameras: int, n_views: int, distortion: str, fix_pp: bool) -> None:
-        if distortion not in DISTORTION_MODELS:
-            raise DegenerateInput(f"distortion model {distortion!r} unknown (one of {', '.join(DISTORTION_MODELS)})")
-        self.free_dist = DISTORTION_MODELS[distortion]
-        self.free_intr = (0, 1) + (() if fix_pp else (2, 3)) + tuple(4 + i for i in self.free_dist)
-        self.n_cameras, self.n_views = n_cameras, n_views
+    def __init__(self, cameras: list[CameraModel], n_views: int, distortion: str, fix_pp: bool) -> None:
+        lens, free = lens_of(distortion)
+        names = LENS_PARAMS[lens]
+        self.free_intr = np.array([0, 1] + ([] if fix_pp else [2, 3])
+                                  + [4 + i for i, n in enumerate(names) if n in free], dtype=np.int64)
+        self.n_cameras, self.n_views = len(cameras), n_views
         self.names: list[str] = []
         self.cam_slice = []
-        for c in range(n_cameras):
+        for c, cam in enumerate(cameras):
             self.cam_slice.append(slice(len(self.names), len(self.names) + len(self.free_intr)))
-            self.names += [f"cam{c}.{INTRINSIC_NAMES[i]}" for i in self.free_intr]
+            self.names += [f"cam{c}.{cam.intrinsic_names[i]}" for i in self.free_intr]
         self.view_slice = []
         for v in range(n_views):
             self.view_slice.append(slice(len(self.names), len(self.names) + 6))
             self.names += [f"view{v}.{n}" for n in POSE_NAMES]
         self.rig_slice = []
-        for c in range(1, n_cameras):
+        for c in range(1, self.n_cameras):
             self.rig_slice.append(slice(len(self.names), len(self.names) + 6))
             self.names += [f"rig{c}.{n}" for n in POSE_NAMES]
 
-    def pack(self, cameras: list[Camera], views: list[Pose], rigs: list[Pose]) -> np.ndarray:
+    def pack(self, cameras: list[CameraModel], views: list[RigidTransform], rigs: list[RigidTransform]) -> np.ndarray:
         x = np.zeros(len(self.names))
         for c, cam in enumerate(cameras):
-            k, d = cam.camera_matrix, np.asarray(cam.dist_coeffs, dtype=np.float64).ravel()
-            full = np.r_[k[0, 0], k[1, 1], k[0, 2], k[1, 2], np.r_[d, np.zeros(5)][:5]]
-            x[self.cam_slice[c]] = full[list(self.free_intr)]
+            x[self.cam_slice[c]] = cam.intrinsics[self.free_intr]
         for v, p in enumerate(views):
             x[self.view_slice[v]] = np.r_[np.ravel(p.rvec), np.ravel(p.tvec)]
         for c, p in enumerate(rigs):
             x[self.rig_slice[c]] = np.r_[np.ravel(p.rvec), np.ravel(p.tvec)]
         return x
 
-    def unpack(self, x: np.ndarray, start: list[Camera]) -> tuple[list[Camera], list[Pose], list[Pose]]:
+    def unpack(self, x: np.ndarray, start: list[CameraModel]
+               ) -> tuple[list[CameraModel], list[RigidTransform], list[RigidTransform]]:
         cams = []
-        free = np.array(self.free_intr, dtype=np.int64)
-        fixed_dist = np.array([4 + i for i in range(5) if i not in self.free_dist], dtype=np.int64)
         for c in range(self.n_cameras):
-            k0 = start[c].camera_matrix
-            full = np.zeros(9)
-            full[:4] = (k0[0, 0], k0[1, 1], k0[0, 2], k0[1, 2])
-            d0 = np.ravel(start[c].dist_coeffs)[:5]
-            full[4:4 + len(d0)] = d0
-            full[free] = x[self.cam_slice[c]]
-            full[fixed_dist] = 0.0  # terms outside the model are 0
-            k = np.array([[full[0], 0.0, full[2]], [0.0, full[1], full[3]], [0.0, 0.0, 1.0]])
-            cams.append(Camera(k, full[4:9]))
-        views = [Pose(x[s][:3], x[s][3:]) for s in self.view_slice]
-        rigs = [Pose(x[s][:3], x[s][3:]) for s in self.rig_slice]
+            full = start[c].intrinsics.copy()   # fixed terms keep their start value (0 outside the model)
+            full[self.free_intr] = x[self.cam_slice[c]]
+            cams.append(start[c].with_intrinsics(full))
+        views = [RigidTransform(x[s][:3].copy(), x[s][3:].copy()) for s in self.view_slice]
+        rigs = [RigidTransform(x[s][:3].copy(), x[s][3:].copy()) for s in self.rig_slice]
         return cams, views, rigs
 
 
-def _project(obs: Observation, cams: list[Camera], views: list[Pose], rigs: list[Pose],
-             layout: _Layout, n_params: int, want_jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """Residuals (2N,) of one observation and, if asked, their Jacobian (2N, n_params)."""
-    cam = cams[obs.camera]
-    view = views[obs.view]
-    if obs.camera == 0:
-        rvec, tvec = view.rvec, view.tvec
-    else:
-        rig = rigs[obs.camera - 1]
-        (rvec, tvec, dr3dr1, dr3dt1, dr3dr2, dr3dt2,
-         dt3dr1, dt3dt1, dt3dr2, dt3dt2) = cv2.composeRT(view.rvec, view.tvec, rig.rvec, rig.tvec)
-    proj, jp = cv2.projectPoints(obs.object_mm, rvec, tvec, cam.camera_matrix, cam.dist_coeffs)
-    res = (proj.reshape(-1, 2) - obs.image_px).ravel()
-    if not want_jac:
-        return res, None
-    jac = np.zeros((len(res), n_params))
-    # projectPoints columns: rvec(3) tvec(3) fx fy cx cy k1 k2 p1 p2 k3
-    intr_cols = np.r_[6:15][list(layout.free_intr)]
-    jac[:, layout.cam_slice[obs.camera]] = jp[:, intr_cols]
-    d_r, d_t = jp[:, 0:3], jp[:, 3:6]
-    if obs.camera == 0:
-        jac[:, layout.view_slice[obs.view]] = np.c_[d_r, d_t]
-    else:
-        jac[:, layout.view_slice[obs.view]] = np.c_[d_r @ dr3dr1 + d_t @ dt3dr1, d_r @ dr3dt1 + d_t @ dt3dt1]
-        jac[:, layout.rig_slice[obs.camera - 1]] = np.c_[d_r @ dr3dr2 + d_t @ dt3dr2, d_r @ dr3dt2 + d_t @ dt3dt2]
-    return res, jac
+def _rotations(rvecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation matrices (K, 3, 3) of rotation vectors (K, 3) and dR/drvec as (K, 3 [rvec], 3, 3)."""
+    R = np.empty((len(rvecs), 3, 3))
+    dR = np.empty((len(rvecs), 3, 3, 3))
+    for i, r in enumerate(rvecs):
+        m, j = cv2.Rodrigues(r.reshape(3, 1))
+        R[i], dR[i] = m, j.reshape(3, 3, 3)
+    return R, dR
 
 
-def _stack(x: np.ndarray, obs: list[Observation], masks: list[np.ndarray], layout: _Layout,
-           start: list[Camera], want_jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    cams, views, rigs = layout.unpack(x, start)
-    rs, js = [], []
-    for o, m in zip(obs, masks):
-        r, j = _project(o, cams, views, rigs, layout, len(x), want_jac)
-        keep = np.repeat(m, 2)
-        rs.append(r[keep])
-        if want_jac:
-            js.append(j[keep])
-    return np.concatenate(rs), (np.vstack(js) if want_jac else None)
+class _Problem:
+    """The stacked inlier corners of every observation and their residuals and sparse Jacobian."""
+
+    def __init__(self, obs: list[Observation], masks: list[np.ndarray], layout: _Layout,
+                 start: list[CameraModel]) -> None:
+        self.layout, self.start = layout, start
+        keep = [(o, m) for o, m in zip(obs, masks) if m.any()]
+        self.X = np.concatenate([o.object_mm[m] for o, m in keep])
+        self.q = np.concatenate([o.image_px[m] for o, m in keep])
+        self.cam = np.concatenate([np.full(int(m.sum()), o.camera) for o, m in keep])
+        self.view = np.concatenate([np.full(int(m.sum()), o.view) for o, m in keep])
+        self.view_start = np.array([s.start for s in layout.view_slice], dtype=np.int64)
+        self._cache: tuple[bytes, np.ndarray, scipy.sparse.csr_matrix] | None = None
+
+    @property
+    def n_residuals(self) -> int:
+        return 2 * len(self.X)
+
+    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_matrix]:
+        """Residuals (2M,) reprojected - detected and their Jacobian (2M, n) as a sparse matrix."""
+        key = x.tobytes()
+        if self._cache is not None and self._cache[0] == key:
+            return self._cache[1], self._cache[2]
+        lay = self.layout
+        cams, _, _ = lay.unpack(x, self.start)
+        rv = np.array([x[s] for s in lay.view_slice])
+        Rv, dRv = _rotations(rv[:, :3])
+        p_view = np.einsum("nij,nj->ni", Rv[self.view], self.X) + rv[self.view, 3:]
+        dp_drvec = np.einsum("nkij,nj->nik", dRv[self.view], self.X)      # d(R_v X)/d rvec_v: (M, 3, 3)
+        res = np.empty((len(self.X), 2))
+        n_intr = len(lay.free_intr)
+        n_cols = n_intr + 6 + (6 if lay.n_cameras > 1 else 0)
+        vals = np.zeros((len(self.X), 2, n_cols))
+        cols = np.zeros((len(self.X), n_cols), dtype=np.int64)
+        for c in range(lay.n_cameras):
+            sel = np.flatnonzero(self.cam == c)
+            if not len(sel):
+                continue
+            pv = p_view[sel]
+            if c == 0:
+                p_cam, R_c0 = pv, np.eye(3)
+            else:
+                rig = x[lay.rig_slice[c - 1]]
+                Rr, dRr = _rotations(rig[None, :3])
+                R_c0 = Rr[0]
+                p_cam = pv @ R_c0.T + rig[3:]
+            q, dq_dp, dq_di = project(p_cam, cams[c], get_gradients=True)
+            res[sel] = q - self.q[sel]
+            vals[sel, :, :n_intr] = dq_di[:, :, lay.free_intr]
+            cols[sel, :n_intr] = np.arange(lay.cam_slice[c].start, lay.cam_slice[c].stop)
+            dq_dview = dq_dp @ R_c0
+            vals[sel, :, n_intr:n_intr + 3] = dq_dview @ dp_drvec[sel]
+            vals[sel, :, n_intr + 3:n_intr + 6] = dq_dview
+            cols[sel, n_intr:n_intr + 6] = self.view_start[self.view[sel], None] + np.arange(6)
+            if c > 0:
+                vals[sel, :, n_intr + 6:n_intr + 9] = dq_dp @ np.einsum("kij,nj->nik", dRr[0], pv)
+                vals[sel, :, n_intr + 9:] = dq_dp
+                cols[sel, n_intr + 6:] = lay.rig_slice[c - 1].start + np.arange(6)
+            elif n_cols > n_intr + 6:
+                # camera 0 has no rig pose: point its unused entries at a real column with value 0
+                cols[sel, n_intr + 6:] = cols[sel, :1]
+        m = len(self.X)
+        rows = np.repeat(np.arange(2 * m).reshape(m, 2), n_cols, axis=1).reshape(m, 2, n_cols)
+        jac = scipy.sparse.csr_matrix((vals.ravel(), (rows.ravel(), np.repeat(cols[:, None, :], 2, axis=1).ravel())),
+                                      shape=(2 * m, len(x)))
+        r = res.ravel()
+        self._cache = (key, r, jac)
+        return r, jac
+
+    def solve(self, x0: np.ndarray, huber_px: float | None) -> np.ndarray:
+        """Minimise the (Huber-robust when ``huber_px``) sum of squared residuals from ``x0``."""
+        sol = least_squares(lambda p: self.evaluate(p)[0], x0, jac=lambda p: self.evaluate(p)[1], method="trf",
+                            loss="huber" if huber_px else "linear", f_scale=huber_px or 1.0, x_scale="jac",
+                            ftol=_TOL, xtol=_TOL, gtol=_TOL, max_nfev=_MAX_NFEV)
+        return sol.x
 
 
-def _levenberg_marquardt(fun: Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]],
-                         x0: np.ndarray, huber_px: float | None = None, max_iter: int = 100) -> np.ndarray:
-    """Minimise sum rho(r) by Levenberg-Marquardt (Marquardt's diagonal scaling).
-
-    ``rho`` is the square, or Huber's function with threshold ``huber_px`` (iteratively reweighted).
-    The normal equations are formed and solved with OpenCV: numpy's threaded BLAS is pathologically
-    slow on a shared, oversubscribed machine, and these matrices are small.
-    """
-    def cost_and_weights(r: np.ndarray) -> tuple[float, np.ndarray]:
-        if huber_px is None:
-            return float(r @ r), np.ones_like(r)
-        a = np.abs(r)
-        inside = a <= huber_px
-        cost = float(np.sum(np.where(inside, r * r, 2.0 * huber_px * a - huber_px ** 2)))
-        return cost, np.where(inside, 1.0, huber_px / np.maximum(a, 1e-300))
-
-    x = np.asarray(x0, dtype=np.float64).copy()
-    r, jac = fun(x, True)
-    cost, w = cost_and_weights(r)
-    lam = 1e-3
-    for _ in range(max_iter):
-        sw = np.sqrt(w)
-        a = cv2.mulTransposed(jac * sw[:, None], True)
-        g = cv2.gemm(jac, (w * r).reshape(-1, 1), 1.0, None, 0.0, flags=cv2.GEMM_1_T).ravel()
-        d = np.diag(a).copy()
-        d[d <= 0] = 1.0
-        improved = False
-        while lam < 1e12:
-            ok, step = cv2.solve(a + lam * np.diag(d), -g.reshape(-1, 1), flags=cv2.DECOMP_CHOLESKY)
-            if not ok:
-                ok, step = cv2.solve(a + lam * np.diag(d), -g.reshape(-1, 1), flags=cv2.DECOMP_SVD)
-            step = step.ravel()
-            x_new = x + step
-            r_new, jac_new = fun(x_new, True)  # the Jacobian comes almost free with the residuals
-            cost_new = cost_and_weights(r_new)[0] if np.all(np.isfinite(r_new)) else np.inf
-            if cost_new < cost:
-                improved = True
-                lam = max(lam * 0.1, 1e-12)
-                break
-            lam *= 10.0
-        if not improved:
-            break  # no step lowers the cost: at the minimum (to rounding)
-        small = (cost - cost_new) <= 1e-12 * max(cost, 1e-300) or np.linalg.norm(step) <= 1e-12 * (np.linalg.norm(x) + 1e-12)
-        x, r, jac = x_new, r_new, jac_new
-        cost, w = cost_and_weights(r)
-        if small:
-            break
-    return x
+def _residual_norms(obs: list[Observation], layout: _Layout, start: list[CameraModel],
+                    x: np.ndarray) -> list[np.ndarray]:
+    """Per observation, (N, 2) reprojected - detected for every corner (outliers included)."""
+    everything = [np.ones(len(o.object_mm), dtype=bool) for o in obs]
+    r, _ = _Problem(obs, everything, layout, start).evaluate(x)
+    out, k = [], 0
+    for o in obs:
+        out.append(r[2 * k:2 * (k + len(o.object_mm))].reshape(-1, 2).copy())
+        k += len(o.object_mm)
+    return out
 
 
-def refine(observations: list[Observation], cameras: list[Camera], view_poses: list[Pose],
-           rig_poses: list[Pose] | None = None, options: RefineOptions = RefineOptions()) -> RefineResult:
+def refine(observations: list[Observation], cameras: list[CameraModel], view_poses: list[RigidTransform],
+           rig_poses: list[RigidTransform] | None = None, options: RefineOptions = RefineOptions()) -> RefineResult:
     """Refine cameras and poses from ``observations`` starting at the given values.
 
-    Raises DegenerateInput when there are fewer residuals than unknowns.
+    The cameras are first put into the lens model of ``options.distortion`` (`as_lens`). Raises
+    DegenerateInput when there are fewer residuals than unknowns or the distortion model is unknown.
     """
     rig_poses = list(rig_poses or [])
     if len(rig_poses) != len(cameras) - 1:
         raise ValueError("one rig pose is needed for every camera after the first")
-    layout = _Layout(len(cameras), len(view_poses), options.distortion, options.fix_principal_point)
+    start = [as_lens(c, options.distortion) for c in cameras]
+    layout = _Layout(start, len(view_poses), options.distortion, options.fix_principal_point)
     obs = [Observation(o.camera, o.view, np.asarray(o.object_mm, np.float64).reshape(-1, 3),
                        np.asarray(o.image_px, np.float64).reshape(-1, 2),
                        tuple(o.labels) or tuple(f"cam{o.camera} view{o.view} #{i}" for i in range(len(o.object_mm))))
@@ -245,19 +270,13 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
     if 2 * sum(len(o.object_mm) for o in obs) <= n_params:
         raise DegenerateInput(f"{sum(len(o.object_mm) for o in obs)} corners cannot determine {n_params} "
                               f"unknowns: more corners are needed")
-    start = [c.copy() for c in cameras]
     x = layout.pack(start, view_poses, rig_poses)
     dropped: list[str] = []
 
-    def fun(p: np.ndarray, want_jac: bool) -> tuple[np.ndarray, np.ndarray | None]:
-        return _stack(p, obs, masks, layout, start, want_jac)
-
     # Robust pass: a few bad corners must not drag the solution before they can be identified.
-    x = _levenberg_marquardt(fun, x, huber_px=options.loss_scale_px)
+    x = _Problem(obs, masks, layout, start).solve(x, options.loss_scale_px)
     for _ in range(options.max_rounds):
-        cams, views, rigs = layout.unpack(x, start)
-        norms = [np.linalg.norm(_project(o, cams, views, rigs, layout, n_params, False)[0].reshape(-1, 2), axis=1)
-                 for o in obs]
+        norms = [np.linalg.norm(r, axis=1) for r in _residual_norms(obs, layout, start, x)]
         inlier_norms = np.concatenate([n[m] for n, m in zip(norms, masks)])
         # Per-corner residual norms of 2-D Gaussian noise follow a Rayleigh law: median = 1.1774 sigma.
         sigma = float(np.median(inlier_norms)) / 1.1774
@@ -272,34 +291,34 @@ def refine(observations: list[Observation], cameras: list[Camera], view_poses: l
                 changed = True
         if 2 * sum(int(m.sum()) for m in masks) <= n_params:
             raise DegenerateInput("too many corners were rejected as outliers to determine the calibration")
-        x = _levenberg_marquardt(fun, x)
+        x = _Problem(obs, masks, layout, start).solve(x, None)
         if not changed:
             break
 
-    r, j = _stack(x, obs, masks, layout, start, True)
-    m_res = len(r)
-    dof = max(m_res - n_params, 1)
+    r, j = _Problem(obs, masks, layout, start).evaluate(x)
+    dof = max(len(r) - n_params, 1)
     s2 = float(r @ r) / dof
-    jtj = cv2.mulTransposed(j, True)
+    jtj = (j.T @ j).toarray()
     # Scale columns before inverting: fx ~ 1e3 and k1 ~ 1e-1 live in one matrix.
     d = np.sqrt(np.maximum(np.diag(jtj), 1e-300))
     jtj_n = jtj / np.outer(d, d)
-    eig = np.ravel(cv2.eigen(jtj_n)[1])
-    rank_deficient = bool(eig.min() < 1e-12 * eig.max())
+    eig, vec = np.linalg.eigh(jtj_n)
+    rank_deficient = bool(eig[0] < 1e-12 * eig[-1])
+    undetermined: list[str] = []
     if rank_deficient:
         cov = np.full((n_params, n_params), np.inf)
+        for k in np.flatnonzero(eig < 1e-12 * eig[-1]):
+            undetermined += [layout.names[i] for i in np.flatnonzero(np.abs(vec[:, k]) > 0.3)]
+        undetermined = sorted(set(undetermined))
     else:
-        cov = s2 * cv2.invert(jtj_n, flags=cv2.DECOMP_SVD)[1] / np.outer(d, d)
+        cov = s2 * (vec / eig) @ vec.T / np.outer(d, d)
     std = np.sqrt(np.abs(np.diag(cov)))
     cams, views, rigs = layout.unpack(x, start)
-    residuals, inliers = [], []
-    for o, msk in zip(obs, masks):
-        rr = _project(o, cams, views, rigs, layout, n_params, False)[0].reshape(-1, 2).copy()
-        residuals.append(rr)
-        inliers.append(msk.copy())
+    residuals = _residual_norms(obs, layout, start, x)
+    inliers = [m.copy() for m in masks]
     rms = float(np.sqrt(np.mean(np.sum(r.reshape(-1, 2) ** 2, axis=1))))
     return RefineResult(cams, views, rigs, list(layout.names), x, std, cov, rms, float(np.sqrt(s2)),
-                        residuals, inliers, dropped, rank_deficient)
+                        residuals, inliers, dropped, rank_deficient, undetermined)
 
 
 def observations_for(corners: list[list[CornerSet]], view_ids: list[int] | list[str] | None = None
@@ -321,7 +340,7 @@ def calibration_from_result(kind: str, image_size: tuple[int, int], corners: lis
     n_cams = len(corners)
     camera_std = []
     for c in range(n_cams):
-        camera_std.append({n: result.std_of(f"cam{c}.{n}") for n in INTRINSIC_NAMES})
+        camera_std.append({n: result.std_of(f"cam{c}.{n}") for n in result.cameras[c].intrinsic_names})
     residuals: list[list[np.ndarray]] = [[np.zeros((0, 2)) for _ in per_view] for per_view in corners]
     inliers: list[list[np.ndarray]] = [[np.zeros(0, dtype=bool) for _ in per_view] for per_view in corners]
     k = 0
@@ -330,7 +349,9 @@ def calibration_from_result(kind: str, image_size: tuple[int, int], corners: lis
             if len(cs):
                 residuals[c][v], inliers[c][v] = result.residuals[k], result.inliers[k]
                 k += 1
-    cal = Calibration(kind, (int(image_size[0]), int(image_size[1])), result.cameras, camera_std,
+    size = (int(image_size[0]), int(image_size[1]))
+    cameras = [replace(c, image_size=size) for c in result.cameras]
+    cal = Calibration(kind, size, cameras, camera_std,
                       result.view_poses, corners, residuals, inliers, result.rms_px, result.sigma_px,
                       dropped=list(result.dropped))
     cal.view_pose_std = [np.array([result.std_of(f"view{v}.{n}") for n in POSE_NAMES])
@@ -342,6 +363,7 @@ def calibration_from_result(kind: str, image_size: tuple[int, int], corners: lis
         cal.rotation_std_rad = np.array([result.std_of(f"rig1.{n}") for n in POSE_NAMES[:3]])
         cal.translation_std_mm = np.array([result.std_of(f"rig1.{n}") for n in POSE_NAMES[3:]])
     if result.rank_deficient:
-        cal.notes.append("the corners do not determine every parameter (rank-deficient Jacobian): "
-                         "standard deviations are infinite; show more of the target")
+        which = f" ({', '.join(result.undetermined)})" if result.undetermined else ""
+        cal.notes.append(f"the corners do not determine every parameter{which} (rank-deficient Jacobian): "
+                         "standard deviations are infinite; show more of the target or fit a simpler lens model")
     return cal

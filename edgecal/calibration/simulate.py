@@ -3,10 +3,11 @@ calibration geometry is developed and tested against, without a detector or a re
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from edgecal.calibration.types import Camera, CornerSet, Pose
+from edgecal import geometry
+from edgecal.calibration.types import CornerSet, RigidTransform
+from edgecal.camera import CameraModel, project
 from edgecal.targets import Board, Target
 
 
@@ -29,19 +30,12 @@ def box_target(size_mm: float = 100.0, inner_corners: tuple[int, int] = (4, 5), 
     return Target(name, boards, source="simulated")
 
 
-def look_at(eye_mm: np.ndarray, centre_mm: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> Pose:
+def look_at(eye_mm: np.ndarray, centre_mm: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> RigidTransform:
     """T_cam_target of a camera at ``eye_mm`` looking at ``centre_mm`` with image-up along ``up``."""
-    eye, centre = np.asarray(eye_mm, float), np.asarray(centre_mm, float)
-    z = centre - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    r = np.vstack([x, y, z])
-    return Pose.from_rt(r, -r @ eye)
+    return RigidTransform.from_rt(*geometry.look_at(eye_mm, centre_mm, up))
 
 
-def project_target(target: Target, camera: Camera, pose: Pose, image_size: tuple[int, int],
+def project_target(target: Target, camera: CameraModel, pose: RigidTransform, image_size: tuple[int, int],
                    noise_px: float = 0.0, rng: np.random.Generator | None = None,
                    margin_px: float = 2.0) -> CornerSet:
     """The corners of every board facing the camera that fall inside the image, with Gaussian noise."""
@@ -52,9 +46,8 @@ def project_target(target: Target, camera: Camera, pose: Pose, image_size: tuple
         pts = b.target_points_mm()
         if (centre_in_target - pts.mean(axis=0)) @ b.normal >= 0:
             continue  # the camera is behind this board
-        px, _ = cv2.projectPoints(pts, pose.rvec, pose.tvec, camera.camera_matrix, camera.dist_coeffs)
-        px = px.reshape(-1, 2)
-        inside = ((px[:, 0] >= margin_px) & (px[:, 1] >= margin_px)
+        px = project(pose.apply(pts), camera)
+        inside = np.all(np.isfinite(px), axis=1) & ((px[:, 0] >= margin_px) & (px[:, 1] >= margin_px)
                   & (px[:, 0] <= image_size[0] - 1 - margin_px) & (px[:, 1] <= image_size[1] - 1 - margin_px))
         for (c, r), p3, p2, ok in zip(b.ids(), pts, px, inside):
             if ok:
@@ -69,7 +62,8 @@ def project_target(target: Target, camera: Camera, pose: Pose, image_size: tuple
 
 def stereo_truth(distance_mm: float = 300.0, baseline_mm: float = 60.0, size_mm: float = 100.0,
                  focal_px: float = 800.0, image_size: tuple[int, int] = (640, 480),
-                 dist: tuple[float, ...] = (-0.12, 0.08, 0.0, 0.0, 0.0)) -> tuple[Camera, Camera, Pose, Pose]:
+                 dist: tuple[float, ...] = (-0.12, 0.08, 0.0, 0.0, 0.0)
+                 ) -> tuple[CameraModel, CameraModel, RigidTransform, RigidTransform]:
     """A plausible stereo rig looking at the box of :func:`box_target`: (left, right, T_left_box, T_right_left).
 
     The rig centre sits ``distance_mm`` from the box centre, looking down on its corner; the right camera
@@ -83,8 +77,9 @@ def stereo_truth(distance_mm: float = 300.0, baseline_mm: float = 60.0, size_mm:
     left_pose = look_at(eye - side * baseline_mm / 2, c)
     right_pose = look_at(eye + side * baseline_mm / 2, c)
     r = right_pose.rotation @ left_pose.rotation.T
-    rig = Pose.from_rt(r, np.ravel(right_pose.tvec) - r @ np.ravel(left_pose.tvec))
+    rig = RigidTransform.from_rt(r, np.ravel(right_pose.tvec) - r @ np.ravel(left_pose.tvec))
     k_l = np.array([[focal_px, 0, image_size[0] / 2 + 4.0], [0, focal_px * 1.002, image_size[1] / 2 - 3.0], [0, 0, 1]])
     k_r = np.array([[focal_px * 1.01, 0, image_size[0] / 2 - 5.0], [0, focal_px * 1.011, image_size[1] / 2 + 2.0], [0, 0, 1]])
     d = np.array(dist, dtype=float)
-    return Camera(k_l, d), Camera(k_r, d * np.array([1.05, 0.9, 1, 1, 1])), left_pose, rig
+    return (CameraModel.from_opencv(k_l, d, image_size),
+            CameraModel.from_opencv(k_r, d * np.array([1.05, 0.9, 1, 1, 1]), image_size), left_pose, rig)

@@ -13,7 +13,9 @@ import numpy as np
 from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.mono import initialise_camera, relative_pose
 from edgecal.calibration.refine import RefineOptions, calibration_from_result, observations_for, refine
-from edgecal.calibration.types import Calibration, Camera, CornerSet, Pose, Reconstruction, Rectification
+from edgecal.calibration.types import Calibration, CornerSet, Reconstruction, Rectification, RigidTransform
+from edgecal.camera import CameraModel, unproject
+from edgecal.geometry import triangulate_rays
 
 
 def calibrate_box_stereo(left: CornerSet, right: CornerSet, image_size: tuple[int, int],
@@ -46,14 +48,10 @@ def _matched(cal: Calibration, view: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return left.image_px[a], right.image_px[b], left.object_mm[a], [left.keys[i][0] for i in a]
 
 
-def triangulate(cam_l: Camera, cam_r: Camera, rig: Pose, px_l: np.ndarray, px_r: np.ndarray) -> np.ndarray:
+def triangulate(cam_l: CameraModel, cam_r: CameraModel, rig: RigidTransform, px_l: np.ndarray,
+                px_r: np.ndarray) -> np.ndarray:
     """Left-camera-frame 3-D points (same unit as ``rig.tvec``) of matched pixels in the two cameras."""
-    nl = cv2.undistortPoints(px_l.reshape(-1, 1, 2), cam_l.camera_matrix, cam_l.dist_coeffs).reshape(-1, 2)
-    nr = cv2.undistortPoints(px_r.reshape(-1, 1, 2), cam_r.camera_matrix, cam_r.dist_coeffs).reshape(-1, 2)
-    p_l = np.hstack([np.eye(3), np.zeros((3, 1))])
-    p_r = np.hstack([rig.rotation, np.ravel(rig.tvec).reshape(3, 1)])
-    h = cv2.triangulatePoints(p_l, p_r, nl.T, nr.T)
-    return (h[:3] / h[3]).T
+    return triangulate_rays(unproject(px_l, cam_l), unproject(px_r, cam_r), rig.rotation, rig.tvec)
 
 
 def reconstruction_error(cal: Calibration) -> Reconstruction:
@@ -61,7 +59,7 @@ def reconstruction_error(cal: Calibration) -> Reconstruction:
 
     The known target points are placed in the left camera by the calibrated target pose of their view.
     """
-    rig = Pose.from_rt(cal.rotation, cal.translation_mm)
+    rig = RigidTransform.from_rt(cal.rotation, cal.translation_mm)
     errors, boards = [], []
     for v, pose in enumerate(cal.view_poses):
         px_l, px_r, obj, names = _matched(cal, v)

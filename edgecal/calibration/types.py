@@ -1,4 +1,7 @@
-"""The data that the calibration modules pass around: cameras, poses, matched corners, results."""
+"""The data that the calibration modules pass around: rigid transforms, matched corners, results.
+
+Cameras are edgecal.camera.CameraModel.
+"""
 
 from __future__ import annotations
 
@@ -7,34 +10,24 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from edgecal.camera import CameraModel
+
 CAMERA_NAMES = ("left", "right")
 
 
 @dataclass
-class Camera:
-    """A pinhole camera with OpenCV distortion (k1, k2, p1, p2, k3); pixels per docs/conventions.md."""
-
-    camera_matrix: np.ndarray
-    dist_coeffs: np.ndarray
-
-    def copy(self) -> "Camera":
-        """An independent copy (distortion always 5 terms)."""
-        return Camera(np.array(self.camera_matrix, dtype=np.float64).copy(),
-                      np.r_[np.asarray(self.dist_coeffs, dtype=np.float64).ravel(), np.zeros(5)][:5].copy())
-
-
-@dataclass
-class Pose:
-    """A rigid transform ``T_a_b`` as an OpenCV rotation vector and a translation (mm)."""
+class RigidTransform:
+    """A rigid transform ``T_a_b`` as an OpenCV rotation vector and a translation (mm): a board's pose in a
+    camera or one camera's in another (the robot pose is edgecal.pose.Pose)."""
 
     rvec: np.ndarray
     tvec: np.ndarray
 
     @staticmethod
-    def from_rt(rotation: np.ndarray, translation: np.ndarray) -> "Pose":
+    def from_rt(rotation: np.ndarray, translation: np.ndarray) -> "RigidTransform":
         """From a 3x3 rotation matrix and a translation."""
-        return Pose(cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel(),
-                    np.asarray(translation, dtype=np.float64).ravel().copy())
+        return RigidTransform(cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel(),
+                              np.asarray(translation, dtype=np.float64).ravel().copy())
 
     @property
     def rotation(self) -> np.ndarray:
@@ -105,9 +98,9 @@ class Calibration:
 
     kind: str
     image_size: tuple[int, int]
-    cameras: list[Camera]
-    camera_std: list[dict[str, float]]          # per camera: fx fy cx cy k1 k2 p1 p2 k3 -> std (nan = fixed)
-    view_poses: list[Pose]                      # T_cam0_target per view
+    cameras: list[CameraModel]                  # image_size set
+    camera_std: list[dict[str, float]]          # per camera: CameraModel.intrinsic_names -> std (nan = fixed)
+    view_poses: list[RigidTransform]            # T_cam0_target per view
     corners: list[list[CornerSet]]              # [camera][view]
     residuals_px: list[list[np.ndarray]]        # [camera][view] (N, 2) reprojected - detected
     inliers: list[list[np.ndarray]]             # [camera][view] (N,) bool

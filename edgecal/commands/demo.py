@@ -47,8 +47,9 @@ def render_box_pair(seed: int, out: Path) -> dict:
 
     The box sits 0.26 m in front of the rig, seen from the octant where its three boards face the cameras.
     """
+    from edgecal.geometry import look_at
     from edgecal.synth import scenes
-    from edgecal.synth.camera import look_at, stereo_right_pose
+    from edgecal.synth.camera import stereo_right_pose
     from edgecal.synth.render import panels_from_target
     from edgecal.synth.view import render_view
 
@@ -104,8 +105,8 @@ def calibrate(out: Path, truth: dict) -> list[str]:
         f_true = truth[side]["K"][0][0]
         lines.append(f"  {side} focal {f_est:.1f} px (true {f_true:.1f}, error {100 * (f_est / f_true - 1):+.2f} %)")
     T_true = np.array(truth["T_right_left_mm"])
-    T_est = np.ravel(rig.translation_m) * 1000
-    dR = Rotation.from_matrix(np.asarray(rig.rotation) @ np.array(truth["R_right_left"]).T).magnitude()
+    T_est = rig.stereo.t_right_left_m * 1000
+    dR = Rotation.from_matrix(rig.stereo.R_right_left @ np.array(truth["R_right_left"]).T).magnitude()
     lines.append(f"  baseline {np.linalg.norm(T_est):.2f} mm (true {np.linalg.norm(T_true):.2f}), T error "
                  f"{np.linalg.norm(T_est - T_true):.2f} mm, rotation error {np.degrees(dR):.3f} deg")
     return lines

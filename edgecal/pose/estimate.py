@@ -7,12 +7,13 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from edgecal.camera import StereoRig, undistort_points
 from edgecal.detection.types import Detection
+from edgecal.geometry import triangulate_pixels
 from edgecal.pose.predict import MIN_FACING_COS, camera_from_rig, facing_cos
 from edgecal.pose.refine import CameraView, pose_covariance, refine_pose
 from edgecal.pose.rigid import fit_rigid, is_degenerate
-from edgecal.pose.triangulate import triangulate_pixels
-from edgecal.pose.types import Pose, PoseSettings, StereoCameras
+from edgecal.pose.types import Pose, PoseSettings
 from edgecal.targets import Target
 
 
@@ -42,13 +43,11 @@ def robot_points_m(target: Target, keys: Sequence[tuple[str, int, int]]) -> np.n
     return out
 
 
-def _views(cams: StereoCameras, target: Target, left: dict, right: dict) -> tuple[CameraView, CameraView]:
+def _views(rig: StereoRig, target: Target, left: dict, right: dict) -> tuple[CameraView, CameraView]:
     kl, kr = sorted(left), sorted(right)
-    rvec_rl, _ = cv2.Rodrigues(np.asarray(cams.R, dtype=np.float64))
-    vl = CameraView(cams.camera_matrix_left, cams.dist_coeffs_left, np.zeros(3), np.zeros(3),
-                    robot_points_m(target, kl), np.array([left[k] for k in kl]).reshape(-1, 2))
-    vr = CameraView(cams.camera_matrix_right, cams.dist_coeffs_right, rvec_rl.ravel(),
-                    np.asarray(cams.T, dtype=np.float64).ravel(), robot_points_m(target, kr),
+    vl = CameraView(rig.left, np.eye(3), np.zeros(3), robot_points_m(target, kl),
+                    np.array([left[k] for k in kl]).reshape(-1, 2))
+    vr = CameraView(rig.right, rig.R_right_left, rig.t_right_left_m, robot_points_m(target, kr),
                     np.array([right[k] for k in kr]).reshape(-1, 2))
     return vl, vr
 
@@ -57,15 +56,19 @@ def _pnp(view: CameraView) -> tuple[np.ndarray, np.ndarray] | None:
     """T_cam_robot from one camera's corners (SQPnP handles planar and non-planar layouts)."""
     if view.n < 4:
         return None
-    ok, rvec, tvec = cv2.solvePnP(view.object_points_m, view.image_points_px, view.camera_matrix,
-                                  view.dist_coeffs, flags=cv2.SOLVEPNP_SQPNP)
+    # on ideal normalised coordinates, so every lens model (fisheye too) is one pinhole problem for OpenCV
+    xn = undistort_points(view.image_points_px, view.camera)
+    keep = np.all(np.isfinite(xn), axis=1)
+    if keep.sum() < 4:
+        return None
+    ok, rvec, tvec = cv2.solvePnP(view.object_points_m[keep], xn[keep], np.eye(3), None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
         return None
     R, _ = cv2.Rodrigues(rvec)
     return R, tvec.ravel()
 
 
-def initial_pose(cams: StereoCameras, target: Target, left: dict, right: dict, vl: CameraView, vr: CameraView,
+def initial_pose(cams: StereoRig, target: Target, left: dict, right: dict, vl: CameraView, vr: CameraView,
                  settings: PoseSettings) -> tuple[np.ndarray, np.ndarray, str] | None:
     """A starting T_rig_robot: triangulation + rigid fit when enough corners are shared, else PnP."""
     both = sorted(set(left) & set(right))
@@ -84,8 +87,7 @@ def initial_pose(cams: StereoCameras, target: Target, left: dict, right: dict, v
     if best is vl:
         return R_c, t_c, "mono-left"
     # T_rig_robot = T_right_left^-1 * T_right_robot
-    Rrl = np.asarray(cams.R, dtype=np.float64)
-    Trl = np.asarray(cams.T, dtype=np.float64).ravel()
+    Rrl, Trl = cams.R_right_left, cams.t_right_left_m
     return Rrl.T @ R_c, Rrl.T @ (t_c - Trl), "mono-right"
 
 
@@ -131,7 +133,7 @@ def corner_outliers(residuals: np.ndarray, sigmas: float, min_px: float) -> np.n
     return norms > threshold
 
 
-def _estimate(tl: dict, tr: dict, target: Target, cams: StereoCameras, settings: PoseSettings,
+def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: PoseSettings,
               start_pose: Pose | None = None) -> Pose:
     """One fit over the corner tables of the left and right images (see estimate_pose).
 
@@ -177,7 +179,7 @@ def _without(table: dict, boards: set[str]) -> dict:
     return {k: v for k, v in table.items() if k[0] not in boards}
 
 
-def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoCameras,
+def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target: Target, cams: StereoRig,
                   settings: PoseSettings = PoseSettings(), max_rejected: int = 2) -> Pose:
     """T_rig_robot from the detections of the left and right images of one stereo frame.
 
@@ -226,7 +228,7 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
     return pose
 
 
-def edge_on_views(pose: Pose, cams: StereoCameras, target: Target, left: dict, right: dict) -> list[tuple[str, str]]:
+def edge_on_views(pose: Pose, cams: StereoRig, target: Target, left: dict, right: dict) -> list[tuple[str, str]]:
     """(board, side) of every board in the corner tables that ``pose`` shows closer to edge-on than
     MIN_FACING_COS in that camera (none when the pose was not computed)."""
     if not np.all(np.isfinite(pose.t_m)):

@@ -11,8 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from edgecal.camera import CameraModel, StereoRig, project, unproject
 from edgecal.detection.types import CornerPrediction
-from edgecal.pose.types import StereoCameras
 from edgecal.targets import Board, Target
 
 # A board seen closer to edge-on than this (cosine between its normal and the line of sight; 0.3 is 72.5
@@ -47,13 +47,13 @@ def extrapolate_pose(R_prev: np.ndarray, t_prev: np.ndarray, stamp_prev_ns: int,
     return dR @ R_last, t_last + ratio * (t_last - np.asarray(t_prev, dtype=np.float64).ravel())
 
 
-def camera_from_rig(cams: StereoCameras, side: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def camera_from_rig(cams: StereoRig, side: str, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """T_cam_robot for the ``side`` ("left" or "right") camera, given T_rig_robot (the rig frame is the left
     camera's)."""
     if side == "left":
         return np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64).ravel()
-    Rrl = np.asarray(cams.R, dtype=np.float64)
-    return Rrl @ R, Rrl @ np.asarray(t, dtype=np.float64).ravel() + np.asarray(cams.T, dtype=np.float64).ravel()
+    Rrl = cams.R_right_left
+    return Rrl @ R, Rrl @ np.asarray(t, dtype=np.float64).ravel() + cams.t_right_left_m
 
 
 def facing_cos(board: Board, R_c: np.ndarray, t_c: np.ndarray) -> float:
@@ -64,7 +64,32 @@ def facing_cos(board: Board, R_c: np.ndarray, t_c: np.ndarray) -> float:
     return float((R_c @ board.normal) @ centre / max(np.linalg.norm(centre), 1e-12))
 
 
-def predict_corners(R: np.ndarray, t_m: np.ndarray, cams: StereoCameras, side: str, target: Target,
+def _in_view(p_cam: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Which camera-frame points (N, 3) the lens can image without folding.
+
+    A distortion polynomial folds points far outside the field of view back into the image: a pinhole lens
+    projects only points well in front and inside 1.5 image sizes of its ideal view; a fisheye lens points
+    whose angle from the axis stays on the rising part of its theta polynomial (what unproject can invert).
+    """
+    w, h = camera.image_size
+    if camera.lens == "fisheye":
+        theta = np.arctan2(np.hypot(p_cam[:, 0], p_cam[:, 1]), p_cam[:, 2])
+        edge = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]]) if w and h else None
+        if edge is None:
+            return theta < np.pi / 2
+        v = unproject(edge, camera)
+        limit = np.nanmax(np.arccos(np.clip(v[:, 2], -1, 1))) if np.any(np.isfinite(v)) else np.pi / 2
+        return theta < limit + np.radians(5.0)
+    front = p_cam[:, 2] > 1e-3
+    if w and h:
+        z = np.where(front, p_cam[:, 2], 1.0)
+        pinhole = (p_cam[:, :2] / z[:, None]) * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+        front &= ((pinhole[:, 0] > -0.5 * w) & (pinhole[:, 0] < 1.5 * w)
+                  & (pinhole[:, 1] > -0.5 * h) & (pinhole[:, 1] < 1.5 * h))
+    return front
+
+
+def predict_corners(R: np.ndarray, t_m: np.ndarray, cams: StereoRig, side: str, target: Target,
                     margin_px: float = 8.0) -> list[CornerPrediction]:
     """The corners of every board of ``target`` that the ``side`` camera should see under T_rig_robot = (R, t).
 
@@ -73,11 +98,9 @@ def predict_corners(R: np.ndarray, t_m: np.ndarray, cams: StereoCameras, side: s
     camera and at least ``margin_px`` inside the image are kept. Occlusion is not modelled: the detector's
     verification drops corners that are not there.
     """
-    K = np.asarray(cams.camera_matrix_left if side == "left" else cams.camera_matrix_right, dtype=np.float64)
-    dist = np.asarray(cams.dist_coeffs_left if side == "left" else cams.dist_coeffs_right, dtype=np.float64)
+    camera = cams.left if side == "left" else cams.right
     R_c, t_c = camera_from_rig(cams, side, R, t_m)
-    rvec = cv2.Rodrigues(R_c)[0]
-    w, h = cams.image_size
+    w, h = camera.image_size
     out = []
     for board in target.boards:
         ids = board.ids()
@@ -85,18 +108,10 @@ def predict_corners(R: np.ndarray, t_m: np.ndarray, cams: StereoCameras, side: s
         if facing_cos(board, R_c, t_c) < MIN_FACING_COS:
             continue
         X_cam = X @ R_c.T + t_c
-        # cv2.projectPoints' distortion polynomial folds points far outside the field of view back into
-        # the image: only points well in front of the camera and inside its undistorted view are projected.
-        front = X_cam[:, 2] > 1e-3
-        if w and h:
-            z = np.where(front, X_cam[:, 2], 1.0)
-            pinhole = (X_cam[:, :2] / z[:, None]) * np.diag(K)[:2] + K[:2, 2]
-            front &= ((pinhole[:, 0] > -0.5 * w) & (pinhole[:, 0] < 1.5 * w)
-                      & (pinhole[:, 1] > -0.5 * h) & (pinhole[:, 1] < 1.5 * h))
+        front = _in_view(X_cam, camera)
         if not front.any():
             continue
-        px, _ = cv2.projectPoints(X[front], rvec, t_c, K, dist)
-        px = px.reshape(-1, 2)
+        px = project(X_cam[front], camera)
         inside = ((px[:, 0] >= margin_px) & (px[:, 0] <= w - 1 - margin_px)
                   & (px[:, 1] >= margin_px) & (px[:, 1] <= h - 1 - margin_px)) if w and h else np.ones(len(px), bool)
         if inside.any():

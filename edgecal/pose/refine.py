@@ -8,19 +8,20 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
+from edgecal.camera import CameraModel, project
+
 
 @dataclass(frozen=True)
 class CameraView:
     """The corners one camera saw: robot-frame points (N, 3, metres) and their pixels (N, 2).
 
-    ``rvec_cam_rig``, ``t_cam_rig`` place the rig frame in this camera (zero for the left camera,
-    the rig's R, T for the right one).
+    ``R_cam_rig``, ``t_cam_rig_m`` place the rig frame in this camera (identity and zero for the left
+    camera, the rig's T_right_left for the right one).
     """
 
-    camera_matrix: np.ndarray
-    dist_coeffs: np.ndarray
-    rvec_cam_rig: np.ndarray
-    t_cam_rig: np.ndarray
+    camera: CameraModel
+    R_cam_rig: np.ndarray
+    t_cam_rig_m: np.ndarray
     object_points_m: np.ndarray
     image_points_px: np.ndarray
 
@@ -33,17 +34,19 @@ class CameraView:
 def _residuals_and_jacobian(x: np.ndarray, views: list[CameraView]) -> tuple[np.ndarray, np.ndarray]:
     """Stacked residuals (projected - observed, px) and their Jacobian w.r.t. x = (rvec, t) of T_rig_robot."""
     res, jac = [], []
-    rvec, tvec = x[:3].reshape(3, 1), x[3:].reshape(3, 1)
+    R, dR = cv2.Rodrigues(x[:3].reshape(3, 1))   # dR: (3, 9), row k = dR/drvec_k (row-major)
+    dR = dR.reshape(3, 3, 3)
     for v in views:
         if v.n == 0:
             continue
-        # T_cam_robot = T_cam_rig * T_rig_robot, with the chain-rule factors from composeRT.
-        r3, t3, dr3dr1, dr3dt1, _, _, dt3dr1, dt3dt1, _, _ = cv2.composeRT(
-            rvec, tvec, v.rvec_cam_rig.reshape(3, 1), v.t_cam_rig.reshape(3, 1))
-        proj, J = cv2.projectPoints(v.object_points_m.reshape(-1, 1, 3), r3, t3, v.camera_matrix, v.dist_coeffs)
-        res.append((proj.reshape(-1, 2) - v.image_points_px).ravel())
-        d_r3t3_dx = np.vstack([np.hstack([dr3dr1, dr3dt1]), np.hstack([dt3dr1, dt3dt1])])
-        jac.append(J[:, :6] @ d_r3t3_dx)
+        X = v.object_points_m
+        p_rig = X @ R.T + x[3:]
+        p_cam = p_rig @ v.R_cam_rig.T + v.t_cam_rig_m
+        q, dq_dp, _ = project(p_cam, v.camera, get_gradients=True)
+        res.append((q - v.image_points_px).ravel())
+        dq_drig = dq_dp @ v.R_cam_rig                                   # (N, 2, 3)
+        dp_drvec = np.einsum("kij,nj->nik", dR, X)                      # d(R X)/d rvec: (N, 3, 3)
+        jac.append(np.concatenate([dq_drig @ dp_drvec, dq_drig], axis=2).reshape(-1, 6))
     return np.concatenate(res), np.vstack(jac)
 
 

@@ -1,4 +1,4 @@
-"""What the pose estimator takes and returns: the stereo cameras, the settings and the pose."""
+"""What the pose estimator takes and returns besides the rig (edgecal.camera.StereoRig): settings and the pose."""
 
 from __future__ import annotations
 
@@ -6,24 +6,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-
-
-@dataclass(frozen=True)
-class StereoCameras:
-    """A calibrated stereo pair (OpenCV model). ``R``, ``T`` map left to right: X_right = R X_left + T (m)."""
-
-    camera_matrix_left: np.ndarray
-    dist_coeffs_left: np.ndarray
-    camera_matrix_right: np.ndarray
-    dist_coeffs_right: np.ndarray
-    R: np.ndarray
-    T: np.ndarray
-    image_size: tuple[int, int] = (0, 0)     # [width, height]
-
-    @property
-    def baseline_m(self) -> float:
-        """Distance between the two optical centres."""
-        return float(np.linalg.norm(self.T))
 
 
 @dataclass(frozen=True)

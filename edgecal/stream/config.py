@@ -24,13 +24,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
+from edgecal.camera import StereoRig
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
 from edgecal.detection.params import DetectorParams, load_params
 from edgecal.drivers.spec import SourceSpec, spec_from_config
 from edgecal.errors import ConfigError, EdgecalError
-from edgecal.pose.types import PoseSettings, QualityBounds, StereoCameras
+from edgecal.pose.types import PoseSettings, QualityBounds
 from edgecal.publish.publisher import DEFAULT_ENDPOINT, check_endpoint
 from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
@@ -63,7 +63,7 @@ class LiveConfig:
 
     path: str
     source: SourceSpec
-    cameras: StereoCameras
+    cameras: StereoRig
     target: Target
     detector: DetectorParams | None
     pose: PoseSettings
@@ -130,7 +130,7 @@ def _read_loop(r: ConfigReader) -> LoopSettings:
         stop_at_end=r.boolean("stop_at_end", d.stop_at_end))
 
 
-def load_stereo_cameras(path: Path, field: str, source: str) -> StereoCameras:
+def load_stereo_cameras(path: Path, field: str, source: str) -> StereoRig:
     """The stereo pair of a rig.yaml; a mono or unreadable file is a ConfigError naming ``field``."""
     from edgecal.calibration.io import load_rig
 
@@ -140,12 +140,8 @@ def load_stereo_cameras(path: Path, field: str, source: str) -> StereoCameras:
         raise ConfigError(f"{source}: field '{field}': {exc}") from None
     if not rig.is_stereo:
         raise ConfigError(f"{source}: field '{field}': {path} holds one camera; the live loop needs a stereo rig")
-    left, right = rig.cameras
-    assert rig.rotation is not None and rig.translation_m is not None
-    return StereoCameras(np.asarray(left.camera_matrix, float), np.ravel(left.dist_coeffs).astype(float),
-                         np.asarray(right.camera_matrix, float), np.ravel(right.dist_coeffs).astype(float),
-                         np.asarray(rig.rotation, float), np.ravel(rig.translation_m).astype(float),
-                         tuple(rig.image_size))
+    assert rig.stereo is not None
+    return rig.stereo
 
 
 def _read_tracking(r: ConfigReader) -> TrackingSettings:

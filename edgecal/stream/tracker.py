@@ -19,9 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edgecal.camera import StereoRig
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.pose.predict import extrapolate_pose, predict_corners
-from edgecal.pose.types import Pose, StereoCameras
+from edgecal.pose.types import Pose
 from edgecal.targets import Target
 
 
@@ -50,7 +51,7 @@ def confirmed_fraction(predictions: list[CornerPrediction], detections: list[Det
 class BoardTracker:
     """The last two valid poses of the stream and the corner predictions made from them."""
 
-    def __init__(self, target: Target, cameras: StereoCameras, settings: TrackingSettings) -> None:
+    def __init__(self, target: Target, cameras: StereoRig, settings: TrackingSettings) -> None:
         self.target = target
         self.cameras = cameras
         self.settings = settings

@@ -300,33 +300,6 @@ def undistort_normalized(xd: np.ndarray, yd: np.ndarray, dist: np.ndarray) -> tu
     return out_x, out_y
 
 
-def look_at(eye_mm: np.ndarray, target_mm: np.ndarray,
-            up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> tuple[np.ndarray, np.ndarray]:
-    """Pose (R_cam_world, t_cam_world_mm) of a camera at ``eye_mm`` looking at ``target_mm``.
-
-    ``up`` (world frame) appears upwards in the image (camera y points down, so y ≈ -up).
-    """
-    eye = np.asarray(eye_mm, dtype=np.float64)
-    z = np.asarray(target_mm, dtype=np.float64) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, np.asarray(up, dtype=np.float64))
-    if np.linalg.norm(x) < 1e-9:
-        # Looking along `up`: any perpendicular will do.
-        x = np.cross(z, np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ eye
-
-
-def rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    """Rotation matrix of ``angle_rad`` about ``axis`` (Rodrigues)."""
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    return np.eye(3) + np.sin(angle_rad) * K + (1.0 - np.cos(angle_rad)) * (K @ K)
-
-
 def stereo_right_pose(R_left_world: np.ndarray, t_left_world_mm: np.ndarray, R_right_left: np.ndarray,
                       T_right_left_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pose of the right camera from the left one and the rig extrinsics (X_right = R X_left + T)."""

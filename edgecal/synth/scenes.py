@@ -21,14 +21,14 @@ from typing import Iterator
 import numpy as np
 
 from edgecal.config import packaged_config_path
-from edgecal.synth.camera import CameraModel, look_at, rotation_about, stereo_right_pose
+from edgecal.geometry import look_at, rotation_about
+from edgecal.synth.camera import CameraModel, stereo_right_pose
 from edgecal.synth.clutter import clutter_background, uniform_background
 from edgecal.synth.photometric import Photometric, random_photometric
 from edgecal.synth.render import Panel, board_panel_extent, panels_from_target
 from edgecal.synth.truth import PAIR_FORMAT, target_json
 from edgecal.synth.view import RenderedView, render_view
 from edgecal.targets import Board, Target, load_target, planar_target
-
 
 #: A seed: an int, or a tuple of ints (e.g. (set seed, image index)).
 SeedLike = int | tuple[int, ...]
