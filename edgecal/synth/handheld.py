@@ -15,7 +15,8 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from edgecal.synth.camera import CameraModel, rotation_about, stereo_right_pose
+from edgecal.geometry import rotation_about
+from edgecal.synth.camera import CameraModel, stereo_right_pose
 from edgecal.synth.photometric import Photometric
 from edgecal.synth.render import Panel, board_panel_extent
 from edgecal.synth.scenes import SeedLike, _fits, _photometric, _rng, _squares_outline, place_board
