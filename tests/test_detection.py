@@ -270,3 +270,80 @@ def test_cli_unreadable_image_and_bad_target_field(tmp_path) -> None:
     target.write_text("name: t\nboards:\n  - name: a\n    inner_corners: [9, 6]\n    square_mm: -3\n")
     res = _cli("detect", "--target", str(target), str(bad))
     assert res.returncode == 2 and "boards[0].square_mm" in res.stderr and "Traceback" not in res.stderr
+
+
+# --- A board inside a larger grid; several boards of one size ------------------------------------------
+
+@pytest.mark.parametrize("cols,rows", [(8, 6), (6, 6), (9, 5)])
+def test_a_board_inside_a_larger_grid_is_not_the_asked_board(cols: int, rows: int) -> None:
+    """A 9x6 board asked as a smaller one: no detection (a sub-grid would start at an arbitrary square),
+    and the note says what was seen. Seed 11 is a view where grouping alone gives an exact 8x6 sub-grid."""
+    for seed in (11, 3, 7):
+        view = planar_view(seed, size=(640, 480), square_px=(15.0, 40.0))
+        debug = edgecal.detect_debug(view.image, planar_target(cols, rows))
+        assert debug.detections == [], (seed, [d.grid for d in debug.detections])
+        assert any(f"found a 9x6 grid; the target says {cols}x{rows}" in n for n in debug.notes), debug.notes
+
+
+def test_three_boards_of_one_size_are_all_returned_and_numbered() -> None:
+    view = multi_view(2, size=(1280, 800), grids=((7, 5),) * 3, square_px=(18.0, 30.0))
+    assert len(view.truth["target"]["boards"]) == 3
+    debug = edgecal.detect_debug(view.image, planar_target(7, 5))
+    score = _score(view, debug.detections)
+    assert len(debug.detections) == 3 and score.false_boards == 0
+    # every truth board found (names aside: the three are copies of the one asked board)
+    truth = ground_truth_from_mapping(view.truth, "rendered")
+    grid_score = score_image([FoundGrid(d.corners, d.ids, d.grid) for d in debug.detections], truth, "grid")
+    assert grid_score.n_found == 3
+    assert [d.copy for d in debug.detections] == [0, 1, 2]
+    # numbered by position: centroids top to bottom
+    ys = [d.corners[:, 1].mean() for d in debug.detections]
+    assert ys == sorted(ys)
+    # a note never says a grid of the asked size does not match the target
+    assert not any("found a 7x5 grid; the target says 7x5" in n for n in debug.notes), debug.notes
+
+
+def test_cli_detect_json_carries_the_size_note(tmp_path) -> None:
+    import cv2
+
+    view = planar_view(11, size=(640, 480), square_px=(15.0, 40.0))
+    img = tmp_path / "board.png"
+    cv2.imwrite(str(img), view.image)
+    res = _cli("detect", "--board", "8x6", str(img))
+    assert res.returncode == 0, res.stderr
+    record = json.loads(res.stdout)
+    assert record["boards"] == []
+    assert any("found a 9x6 grid; the target says 8x6" in n for n in record["notes"])
+    assert "found a 9x6 grid; the target says 8x6" in res.stderr
+
+
+def _bigger_board_views(folder, n: int = 6) -> list[str]:
+    """``n`` rendered 640x480 views of a 9x6 board written to ``folder``; returns the paths."""
+    import cv2
+
+    folder.mkdir()
+    paths = []
+    for seed in range(n):
+        view = planar_view(20 + seed, size=(640, 480), square_px=(20.0, 35.0), tilt_max_deg=30.0)
+        paths.append(str(folder / f"{seed:02d}.png"))
+        cv2.imwrite(paths[-1], view.image)
+    return paths
+
+
+def test_capture_and_calibrate_refuse_a_sub_grid_alike(tmp_path, capsys, caplog) -> None:
+    """capture --board 8x6 on 9x6 frames shows no board and the note; calibrate --board 8x6 fails saying why
+    instead of calibrating on sub-grids (exit non-zero, no rig written)."""
+    from edgecal.cli import main
+
+    paths = _bigger_board_views(tmp_path / "imgs")
+    assert main(["capture", f"replay:{tmp_path / 'imgs'}?pace=fast", "--frames", "2", "--board", "8x6",
+                 "--json"]) == 0
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert len(rows) == 2 and all(r["boards"] == [] for r in rows)
+    assert all(any("found a 9x6 grid; the target says 8x6" in n for n in r["notes"]) for r in rows)
+    out = tmp_path / "rig.yaml"
+    rc = main(["calibrate", "--board", "8x6", "--square-mm", "25", "--left", *paths, "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc != 0 and not out.exists() and "Traceback" not in err
+    assert "found a 9x6 grid; the target says 8x6" in caplog.text
+    assert main(["calibrate", "--board", "9x6", "--square-mm", "25", "--left", *paths, "--out", str(out)]) == 0

@@ -48,7 +48,7 @@ def test_capture_prints_timestamps_and_detections(board_folder: Path, tmp_path: 
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [r["stamp_ns"] for r in rows] == [0, 40_000_000, 80_000_000]
     assert rows[1]["interval_ms"] == 40.0 and rows[0]["size"] == "320x240"
-    assert all(r["boards"] == [{"board": "chessboard-9x6", "corners": 54, "of": 54, "complete": True}] for r in rows)
+    assert all(r["boards"] == [{"board": "chessboard-9x6", "copy": 0, "corners": 54, "of": 54, "complete": True}] for r in rows)
     with open_source(f"replay:{tmp_path / 'rec'}?pace=fast") as rec:   # --out wrote a replayable recording
         assert [f.stamp_ns for f in rec] == [0, 40_000_000, 80_000_000]
 

@@ -113,12 +113,23 @@ def input_views(left: list[str], right: list[str] | None) -> list[View]:
     return name_views(files)
 
 
-def _detect(image: np.ndarray, target: Target) -> list:
+def _detect(image: np.ndarray, target: Target, path: object = None) -> list:
+    """The detections of one image; the detector's notes (a grid of another size than the target's) are
+    logged, and a board seen more than once is left out: which copy is the target's would be a guess."""
     try:
-        from edgecal import detect  # the lead's detector; imported late so calibrate's other paths work without it
+        from edgecal import detect_debug  # imported late so calibrate's other paths work without the detector
     except ImportError as exc:
         raise EdgecalError(f"the chessboard detector is not available in this install ({exc})") from None
-    return detect(image, target)
+    debug = detect_debug(image, target)
+    where = f"{path}: " if path is not None else ""
+    for note in debug.notes:
+        log.warning("%s%s", where, note)
+    copied = {d.board for d in debug.detections if d.copy > 0}
+    for name in sorted(copied):
+        n = sum(d.board == name for d in debug.detections)
+        log.warning("%s%d boards of %s's size in the image: not used for it (which one is the target's is "
+                    "ambiguous)", where, n, name)
+    return [d for d in debug.detections if d.board not in copied]
 
 
 def _planar_corners(dets: list, target: Target) -> CornerSet:
@@ -149,7 +160,7 @@ def detect_views(views: list[View], target: Target) -> tuple[list[list[CornerSet
                 elif (w, h) != size:
                     raise InputError(f"{f}: the image is {w}x{h} but {first} is {size[0]}x{size[1]}; "
                                      f"all images must come from cameras of one size")
-            dets = [_detect(img, target) for img in images]
+            dets = [_detect(img, target, f) for img, f in zip(images, view.files)]
             if target.is_planar:
                 found = [_planar_corners(d, target) for d in dets]
             elif n_cams == 1:

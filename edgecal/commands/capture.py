@@ -32,14 +32,17 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     return p
 
 
-def _detect(image: Any, target: Any) -> list[dict]:
-    from edgecal import detect
+def _detect(image: Any, target: Any) -> tuple[list[dict], list[str]]:
+    """The boards found in one frame (name, copy, corners found of the board's) and the detector's notes
+    (e.g. a grid of another size than the target's)."""
+    from edgecal import detect_debug
     from edgecal.images import as_grey
     found = []
-    for d in detect(as_grey(image), target):
-        found.append({"board": d.board, "corners": int(len(d.corners)), "of": target.board(d.board).n_corners,
-                      "complete": bool(d.complete)})
-    return found
+    debug = detect_debug(as_grey(image), target)
+    for d in debug.detections:
+        found.append({"board": d.board, "copy": d.copy, "corners": int(len(d.corners)),
+                      "of": target.board(d.board).n_corners, "complete": bool(d.complete)})
+    return found, list(debug.notes)
 
 
 def _describe_frame(f: Any, prev_stamp: int | None, now: int, target: Any, live: bool) -> dict:
@@ -53,7 +56,9 @@ def _describe_frame(f: Any, prev_stamp: int | None, now: int, target: Any, live:
     if f.exposure_us is not None:
         out["exposure_us"] = f.exposure_us
     if target is not None:
-        out["boards"] = _detect(f.image, target)
+        out["boards"], notes = _detect(f.image, target)
+        if notes:
+            out["notes"] = notes
     return out
 
 
@@ -63,8 +68,9 @@ def _text(d: dict) -> str:
             f"latency={d['latency_ms']:.2f}ms" + (f" age={d['age_ms']:.2f}ms" if "age_ms" in d else "")
             + f" {d['size']} {d['pixels']}")
     if "boards" in d:
-        boards = ", ".join(f"{b['board']} {b['corners']}/{b['of']}" for b in d["boards"]) or "no board"
-        line += f": {boards}"
+        boards = ", ".join(f"{b['board']}" + (f"#{b['copy']}" if b["copy"] else "") + f" {b['corners']}/{b['of']}"
+                           for b in d["boards"]) or "no board"
+        line += f": {boards}" + "".join(f" ({n})" for n in d.get("notes", []))
     return line
 
 

@@ -20,7 +20,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``edgecal detect``."""
     p = sub.add_parser("detect", help="find chessboards in images (one JSON line per image)",
                        description="Find the target's chessboards in each image and print one JSON object "
-                                   "per line: image, size, boards (name, corners, ids), ms.")
+                                   "per line: image, size, boards (name, copy, corners, ids), notes, ms.")
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--target", metavar="FILE.yaml", help="target file (configs/targets/...)")
     what.add_argument("--board", metavar="CxR", help="a flat board of C x R inner corners, e.g. 9x6")
@@ -63,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
         for note in debug.notes:
             print(f"edgecal: {path}: {note}", file=sys.stderr)
         record = {"image": str(path), "size": [int(grey.shape[1]), int(grey.shape[0])],
-                  "boards": [d.as_json() for d in debug.detections], "ms": round(ms, 2)}
+                  "boards": [d.as_json() for d in debug.detections], "notes": list(debug.notes),
+                  "ms": round(ms, 2)}
         print(json.dumps(record), flush=True)
         if draw_dir is not None:
             write_overlay(draw_dir / (Path(path).stem + "_detect.png"), grey, debug, force=args.force)

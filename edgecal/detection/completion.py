@@ -19,6 +19,11 @@ from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M
                                      probe_quality, probe_radii)
 from edgecal.detection.subpixel import refine_corners
 
+# Where the squares beyond a grid line are sampled, as fractions of one grid step outwards (0.5 = their
+# centre). The outermost squares of many printed boards are cut narrower than the others, so the centre
+# alone can miss them; next to the line the corners' blur mixes both sides: several depths are tried.
+BEYOND_STEP_FRACTIONS = (0.2, 0.35, 0.5)
+
 
 def _local_homography(grid: dict[tuple[int, int], np.ndarray], u_lo: int, u_hi: int, v_lo: int,
                       v_hi: int) -> np.ndarray | None:
@@ -54,9 +59,9 @@ def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, 
 
 
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
-                  outward: tuple[int, int], smooth: np.ndarray) -> np.ndarray | None:
-    """Mean intensity of the squares just outside a grid line, in order along it (None: not measurable,
-    e.g. outside the image or too short)."""
+                  outward: tuple[int, int], smooth: np.ndarray, fraction: float) -> np.ndarray | None:
+    """Mean intensity of the squares just outside a grid line, in order along it, sampled ``fraction`` of a
+    grid step outwards (None: not measurable, e.g. outside the image or too short)."""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
     ordered = sorted(line, key=lambda l: l[0] * along[0] + l[1] * along[1])
@@ -79,7 +84,8 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
         b0, b1 = outer[k], outer[k + 1]
         if a0 is None or a1 is None or b0 is None or b1 is None:
             continue
-        cells.append(0.25 * (a0 + a1 + b0 + b1))
+        mid = 0.5 * (a0 + a1)
+        cells.append(mid + fraction * (0.5 * (b0 + b1) - mid))
     if len(cells) < 3:
         return None
     hh, ww = smooth.shape
@@ -101,13 +107,16 @@ def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list
     perfect grid row; what gives it away is the uniform margin beyond it. This is the positive evidence a
     new outer line needs; squares that cannot be measured (outside the image) count as alternating.
     """
-    vals = _cells_beyond(grid, line, outward, smooth)
-    if vals is None:
-        return True
-    diffs = np.diff(vals)
-    alternating = np.sum(diffs[1:] * diffs[:-1] < 0)
-    strong = np.abs(diffs) >= 0.5 * min_contrast
-    return bool(strong.mean() >= 0.7 and alternating >= 0.7 * (len(diffs) - 1))
+    for fraction in BEYOND_STEP_FRACTIONS:
+        vals = _cells_beyond(grid, line, outward, smooth, fraction)
+        if vals is None:
+            return True
+        diffs = np.diff(vals)
+        alternating = np.sum(diffs[1:] * diffs[:-1] < 0)
+        strong = np.abs(diffs) >= 0.5 * min_contrast
+        if strong.mean() >= 0.7 and alternating >= 0.7 * (len(diffs) - 1):
+            return True
+    return False
 
 
 def squares_beyond_uniform(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
@@ -115,10 +124,11 @@ def squares_beyond_uniform(grid: dict[tuple[int, int], np.ndarray], line: list[t
     """Whether the squares just outside a grid line are one uniform area (a board's margin): the evidence
     needed to remove a line already in a grid (where extrapolation is poor, e.g. at a fisheye rim, cells
     land anywhere; that is not uniform, and the line stays)."""
-    vals = _cells_beyond(grid, line, outward, smooth)
-    if vals is None:
-        return False
-    return bool(np.mean(np.abs(np.diff(vals)) < min_contrast) >= 0.7)
+    for fraction in BEYOND_STEP_FRACTIONS:
+        vals = _cells_beyond(grid, line, outward, smooth, fraction)
+        if vals is None or np.mean(np.abs(np.diff(vals)) < min_contrast) < 0.7:
+            return False
+    return True
 
 
 def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray,

@@ -33,6 +33,9 @@ DEFAULT_PARAMS = DetectorParams()
 # Closest two corners of a board may be at half resolution before its corners are not trusted there
 # (sub-pixel windows need a few pixels of their own; the full-resolution search decides below this).
 MIN_HALF_SPACING_PX = 5.0
+# Completion grows a grid up to this many labels per axis whatever the board's size, so that a board that is
+# part of a larger regular grid is seen as that grid (and its size said in the note), never as a sub-grid.
+GRID_GROWTH_MAX_DIM = 40
 
 
 def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, radii: np.ndarray,
@@ -109,6 +112,11 @@ def _boards_by_size(target: Target) -> dict[frozenset, list[Board]]:
     return out
 
 
+def _all_boards_found(detections: list[Detection], target: Target) -> bool:
+    """Whether every board of the target has been found at least once."""
+    return {b.name for b in target.boards} <= {d.board for d in detections}
+
+
 class _Level:
     """The images one pyramid level works on; the gradients are computed on first use only (a level that
     only refines corners found on a coarser one never needs them)."""
@@ -158,7 +166,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
     _boards_from_grids(half_level, half_grids, target, p, half)
     # pyrDown's 5x5 binomial filter passes 0.27 of white noise: undo that instead of measuring again.
     level = _Level(grey, noise_half / 0.273)
-    if len(half.detections) == len(target.boards):
+    if _all_boards_found(half.detections, target):
         found = _refine_at_full_resolution(half, level, p)
         if found is not None:
             return found
@@ -175,7 +183,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
         xy = refine_corners(level.smooth, xy, spacing)
         seeds.append(dict(zip(grid.keys(), xy)))
     _boards_from_grids(level, seeds, target, p, debug)
-    if len(debug.detections) == len(target.boards):
+    if _all_boards_found(debug.detections, target):
         return debug
     full, grids = _find_grids(level, p)
     _boards_from_grids(level, grids, target, p, full)
@@ -186,8 +194,8 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
     """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution.
 
     None when a board was too small at half resolution to trust (corners closer than MIN_HALF_SPACING_PX
-    there) or does not
-    stay regular after refinement: the caller then works at full resolution.
+    there), does not stay regular after refinement or extends beyond its size at full resolution: the
+    caller then works at full resolution.
     """
     for det in half.detections:
         spacing = 2.0 * nearest_spacing(det.corners)
@@ -197,6 +205,11 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
         xy = refine_corners(level.smooth, 2.0 * det.corners, spacing, max_move_px=3.0)
         det.corners = refine_corners(level.smooth, xy, spacing)
         if not grid_is_regular(det.corners, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
+            return None
+        # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
+        grown = complete_grid({(int(c), int(r)): q for (c, r), q in zip(det.ids, det.corners)}, level.smooth,
+                              level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
+        if len(grown) > len(det.corners):
             return None
     return DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
                           half.detections, half.notes)
@@ -234,47 +247,75 @@ def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[
 
 def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: DetectorParams,
                        debug: DetectionDebug) -> None:
-    """Trim, complete, match to the target's boards and number each grid; appends to debug.detections."""
+    """Trim, complete, match to the target's boards and number each grid; appends to debug.detections.
+
+    Every grid is grown as far as the image shows a chessboard (up to GRID_GROWTH_MAX_DIM labels per axis),
+    not only up to the board's size: a board that is part of a larger regular grid is not the asked board
+    (taking a sub-grid would put the board's origin at an arbitrary square), so it gives a note, not a
+    detection. Several grids of one board's size all become detections, numbered by ``copy``.
+    """
     smooth = level.smooth
     by_size = _boards_by_size(target)
-    max_dim = max(max(b.cols, b.rows) for b in target.boards)
     min_corners = min(b.n_corners for b in target.boards)
     finished = []
     for grid in grids:
         # A grid that already is a complete board needs no trimming: a stray outer line would change its size.
         if not _is_full_board(grid, by_size):
             grid = trim_false_edges(grid, smooth, p.min_contrast)
-        # Completion is for boards the probe half-saw, not for every fragment of clutter.
-        if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) and not _is_full_board(grid, by_size):
-            grid = complete_grid(grid, smooth, level.gx, level.gy, max_dim, p, debug.accepted)
+        # Completion is for boards the probe half-saw, not for every fragment of clutter; a complete board
+        # is still tried one line further on every side (it may be a sub-grid of a larger one).
+        if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) or _is_full_board(grid, by_size):
+            grid = complete_grid(grid, smooth, level.gx, level.gy, GRID_GROWTH_MAX_DIM, p, debug.accepted)
         if len(grid) >= p.min_grid_corners:
             finished.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.
     finished.sort(key=len, reverse=True)
     used_boards = {d.board for d in debug.detections}
+    notes: list[str] = []
     for grid in finished:
         uv = np.array(list(grid.keys()), dtype=np.int64)
         xy = np.array(list(grid.values()), dtype=np.float64)
         span = uv.max(axis=0) - uv.min(axis=0) + 1
         full = len(uv) == span[0] * span[1]
-        boards = [b for b in by_size.get(frozenset(int(s) for s in span), []) if b.name not in used_boards]
+        boards = by_size.get(frozenset(int(s) for s in span), [])
         if not full or not boards:
-            _note_near_miss(debug, span, full, len(uv), target)
+            _note_near_miss(notes, span, full, len(uv), target)
             continue
-        board = boards[0]
+        # A named board not yet found takes the grid; when all are, the grid is another copy of the first.
+        board = next((b for b in boards if b.name not in used_boards), boards[0])
         ids = assign_ids(uv, xy, smooth, board)
         if ids is None:
-            debug.notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
+            notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
         # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
         xy = refine_corners(smooth, xy, nearest_spacing(xy))
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
-            debug.notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
+            notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         quality = _corner_quality(level, xy[order], p)
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows)))
         used_boards.add(board.name)
+    _number_copies(debug.detections)
+    for note in notes:
+        if note not in debug.notes:
+            debug.notes.append(note)
+
+
+def _number_copies(detections: list[Detection]) -> None:
+    """Number the detections of each board name 0, 1, ... by position (centroid top to bottom, then left
+    to right), so that the numbering does not depend on the order the grids were found in."""
+    by_name: dict[str, list[Detection]] = {}
+    for d in detections:
+        by_name.setdefault(d.board, []).append(d)
+    for same in by_name.values():
+        if len(same) == 1:
+            same[0].copy = 0
+            continue
+        keys = [(float(d.corners[:, 1].mean()), float(d.corners[:, 0].mean())) for d in same]
+        for k, i in enumerate(sorted(range(len(same)), key=lambda j: keys[j])):
+            same[i].copy = k
+    detections.sort(key=lambda d: (d.board, d.copy))
 
 
 def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
@@ -284,14 +325,21 @@ def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndar
     return probe_quality(meas, p)
 
 
-def _note_near_miss(debug: DetectionDebug, span: np.ndarray, full: bool, n: int, target: Target) -> None:
-    """Record a grid that matched no board: the most common cause is a board-size convention mistake."""
+def _note_near_miss(notes: list[str], span: np.ndarray, full: bool, n: int, target: Target) -> None:
+    """Record a grid that matched no board: the most common cause is a board-size convention mistake
+    (or a board that is part of a larger grid). Small fragments, mostly clutter, are not worth a note."""
     sizes = ", ".join(f"{b.cols}x{b.rows}" for b in target.boards)
+    if n < min(12, min(b.n_corners for b in target.boards)):
+        return
+    # The grid's labels have no preferred axis: say its size the way round the target says its own.
+    first = target.boards[0]
+    if (span[0] >= span[1]) != (first.cols >= first.rows):
+        span = span[::-1]
     if full:
-        debug.notes.append(f"found a {span[0]}x{span[1]} grid; the target says {sizes} inner corners")
-    elif n >= 12:
-        debug.notes.append(f"found a partial grid of {n} corners spanning {span[0]}x{span[1]}; "
-                           f"the target says {sizes} inner corners")
+        notes.append(f"found a {span[0]}x{span[1]} grid; the target says {sizes} inner corners")
+    else:
+        notes.append(f"found a partial grid of {n} corners spanning {span[0]}x{span[1]}; "
+                     f"the target says {sizes} inner corners")
 
 
 def detect(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> list[Detection]:

@@ -17,6 +17,8 @@ class Detection:
     ids:     (N, 2) int64 (col, row) of each corner on the board ``board``, matching the target.
     quality: (N,) float64 per-corner figure in [0, 1] (1 = a clean saddle; see docs/detector.md).
     grid:    (cols, rows) of the grid that was found (equals the board's size when complete).
+    copy:    0 for the first (or only) board of this name in the image, 1, 2, ... for further boards of
+             the same size, numbered by position (centroid top to bottom, then left to right).
     """
 
     board: str
@@ -25,11 +27,13 @@ class Detection:
     quality: np.ndarray
     grid: tuple[int, int]
     complete: bool = True
+    copy: int = 0
 
     def as_json(self) -> dict:
         """The JSON form printed by ``edgecal detect``."""
         return {
             "name": self.board,
+            "copy": self.copy,
             "corners": [[round(float(x), 4), round(float(y), 4)] for x, y in self.corners],
             "ids": [[int(c), int(r)] for c, r in self.ids],
         }
@@ -44,7 +48,8 @@ class DetectionDebug:
     directions:  (K, 4) border directions in radians at each accepted point.
     spacing:     (K,) estimated local square size in pixels at each accepted point.
     detections:  the final boards.
-    notes:       human-readable remarks, e.g. a grid of another size than the target's.
+    notes:       human-readable remarks, each once, e.g. a grid of another size than the target's
+                 ("found a 9x6 grid; the target says 8x6 inner corners").
     """
 
     candidates: np.ndarray

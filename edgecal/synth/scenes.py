@@ -199,12 +199,18 @@ MULTI_GRIDS = ((5, 3), (6, 4), (7, 5), (4, 3), (8, 5), (3, 3))
 def multi_view(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), n_boards: int | tuple[int, int] = (2, 3),
                square_px: FloatOrRange = (12.0, 40.0), tilt_max_deg: float = 40.0,
                photometric: Photometric | str = "normal", background: str = "clutter",
-               supersampling: int = 12, border_px: float = 4.0) -> RenderedView:
-    """2..3 boards of different grids and square sizes, side by side (no overlap), world = camera frame."""
+               supersampling: int = 12, border_px: float = 4.0,
+               grids: tuple[tuple[int, int], ...] | None = None) -> RenderedView:
+    """2..3 boards of different grids and square sizes, side by side (no overlap), world = camera frame.
+
+    ``grids``: the boards' inner corners (cols, rows) instead of a random pick of MULTI_GRIDS (sizes may
+    repeat: several boards of one size); ``n_boards`` is then ignored.
+    """
     rng = _rng(seed, "multi")
     camera = random_camera(rng, size)
     n = int(n_boards) if not isinstance(n_boards, (tuple, list)) else int(rng.integers(n_boards[0], n_boards[1] + 1))
-    grids = [MULTI_GRIDS[int(i)] for i in rng.permutation(len(MULTI_GRIDS))[:n]]
+    if grids is None:
+        grids = tuple(MULTI_GRIDS[int(i)] for i in rng.permutation(len(MULTI_GRIDS))[:n])
     panels: list[Panel] = []
     taken: list[tuple[float, float, float, float]] = []
     for k, (cols, rows) in enumerate(grids):
