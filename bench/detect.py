@@ -14,7 +14,8 @@ Scoring (edgecal.evaluate): edgecal must number boards as the truth does, up to 
 symmetries; the references know nothing of our numbering, so any grid symmetry is accepted for them.
 OpenCV's detectors take one board size per call and return at most one board; they are called once per
 distinct board size of the target. The libcbdetect binding reports how many boards it saw but returns
-the corners of one only.
+the corners of one only. calib-targets needs no board size; its components count when complete and of a
+target board's size.
 """
 
 from __future__ import annotations
@@ -23,7 +24,8 @@ import os
 
 if __name__ == "__main__":
     # Single thread everywhere, before numpy/numba/OpenCV are imported (not when a test imports this).
-    for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+                 "RAYON_NUM_THREADS"):
         os.environ[_var] = "1"
 
 import argparse  # noqa: E402
@@ -330,6 +332,30 @@ def make_checkerboard() -> Callable:
     return detect
 
 
+def make_calib_targets() -> Callable:
+    """The PyPI ``calib-targets`` package (Rust; ChESS corners + grid growing): ``detect_chessboard_all``
+    needs no board size and returns every chessboard component it recovers; a component counts when its
+    grid is complete and has the size of one of the target's boards (either way round)."""
+    import calib_targets
+
+    def detect(grey: np.ndarray, target: Target) -> tuple[list[FoundGrid], int]:
+        sizes = {frozenset(s) for s in _distinct_sizes(target)}
+        out = []
+        for res in calib_targets.detect_chessboard_all(np.ascontiguousarray(grey)):
+            if not res.corners:
+                continue
+            xy = np.array([c.position for c in res.corners], dtype=np.float64)
+            uv = np.array([(c.grid.u, c.grid.v) for c in res.corners], dtype=np.int64)
+            uv -= uv.min(axis=0)
+            span = tuple(int(s) for s in uv.max(axis=0) + 1)
+            if frozenset(span) not in sizes or len(uv) != span[0] * span[1]:
+                continue
+            out.append(FoundGrid(xy, uv, span))
+        return out, len(out)
+
+    return detect
+
+
 def make_edgecal() -> Callable:
     """edgecal.detect(image, target) -> list[Detection]."""
     try:
@@ -359,7 +385,7 @@ class Detector:
     warmup_ms: float = float("nan")
 
 
-DETECTOR_NAMES = ("edgecal", "opencv", "opencv_sb", "libcbdetect", "checkerboard")
+DETECTOR_NAMES = ("edgecal", "opencv", "opencv_sb", "libcbdetect", "checkerboard", "calib_targets")
 
 
 def load_detectors(names: list[str]) -> list[Detector]:
@@ -370,6 +396,7 @@ def load_detectors(names: list[str]) -> list[Detector]:
         "opencv_sb": (lambda: detect_opencv_sb, "grid", True),
         "libcbdetect": (make_libcbdetect, "grid", False),
         "checkerboard": (make_checkerboard, "grid", True),
+        "calib_targets": (make_calib_targets, "grid", True),
     }
     out = []
     for name in names:

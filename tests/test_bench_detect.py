@@ -40,10 +40,12 @@ def item(bench):
     return bench.Item("planar_11", view.image, target, truth)
 
 
-@pytest.mark.parametrize("name", ["opencv", "opencv_sb", "libcbdetect"])
+@pytest.mark.parametrize("name", ["opencv", "opencv_sb", "libcbdetect", "calib_targets"])
 def test_reference_adapter_reads_the_corner_order(bench, item, name):
     if name == "libcbdetect":
         pytest.importorskip("libCBDetect")
+    if name == "calib_targets":
+        pytest.importorskip("calib_targets")
     (det,) = bench.load_detectors([name])
     assert det.run is not None, det.status
     found, reported = det.run(item.grey, item.target)
@@ -101,3 +103,11 @@ def test_json_is_written_atomically_and_not_clobbered(bench, tmp_path):
 def test_main_rejects_unknown_detector(bench, capsys):
     assert bench.main(["--detectors", "nope", "--sets", "none"]) == 2
     assert "unknown detector" in capsys.readouterr().err
+
+
+def test_calib_targets_counts_only_grids_of_the_asked_size(bench, item):
+    pytest.importorskip("calib_targets")
+    (det,) = bench.load_detectors(["calib_targets"])
+    other = bench._target_from_boards([{"name": "b", "cols": 6, "rows": 5}], "6x5")
+    found, reported = det.run(item.grey, other)
+    assert found == [] and reported == 0
