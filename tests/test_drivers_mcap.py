@@ -255,7 +255,8 @@ def test_sources_command_lists_the_image_topics(tmp_path: Path) -> None:
 
 def _camera_frames(n: int, shape: tuple, dtype: type = np.uint8) -> list:
     from edgecal.drivers import Frame
-    return [Frame(gradient(i, shape, dtype), s, s + 5, 7 + i, "cam") for i, s in enumerate(_stamps(n, jitter=1_000_000))]
+    stamps = _stamps(n, jitter=1_000_000)
+    return [Frame(gradient(i, shape, dtype), s, s + 5, 7 + i, "cam") for i, s in enumerate(stamps)]
 
 
 @pytest.mark.parametrize("shape, dtype", [((24, 32), np.uint8), ((24, 32, 3), np.uint8), ((20, 16), np.uint16)])
@@ -277,8 +278,7 @@ def test_record_to_mcap_round_trip(tmp_path: Path, shape: tuple, dtype: type) ->
     assert {(s.name, c.topic) for s, c, _, _ in decoded} == {("sensor_msgs/msg/Image", "/camera/image_raw")}
     first = decoded[0][3]
     assert (first.width, first.height, first.header.frame_id) == (shape[1], shape[0], "camera")
-    assert first.encoding == {1: "mono8" if dtype == np.uint8 else "mono16", 3: "bgr8"}[len(shape) if len(shape) == 3
-                                                                                         else 1]
+    assert first.encoding == ("bgr8" if len(shape) == 3 else "mono8" if dtype == np.uint8 else "mono16")
     # ... and through edgecal's mcap: source: the same pixels and stamps.
     back = _read_all(f"mcap:{out}?topic=/camera/image_raw&pace=fast")
     assert [f.stamp_ns for f in back] == [f.stamp_ns for f in frames]

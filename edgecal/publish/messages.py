@@ -24,8 +24,10 @@ def _num(x: float, digits: int | None = None) -> float | None:
     return round(x, digits) if digits is not None else x
 
 
-def pose_message(pose: Pose, seq: int, stamp_ns: int, publish_ns: int) -> dict[str, Any]:
-    """The "pose" message of one frame; ``pose`` and ``covariance`` are null when none could be computed."""
+def pose_message(pose: Pose, seq: int, stamp_ns: int, publish_ns: int, frame_id: str = "rig",
+                 child_frame_id: str = "robot") -> dict[str, Any]:
+    """The "pose" message of one frame; ``pose`` and ``covariance`` are null when none could be computed.
+    ``frame_id`` / ``child_frame_id`` are publish.frame_id / publish.child_frame_id."""
     computed = bool(math.isfinite(float(pose.t_m[0])))
     cov = [_num(v) for v in pose.covariance.ravel()] if computed else None
     return {
@@ -35,8 +37,8 @@ def pose_message(pose: Pose, seq: int, stamp_ns: int, publish_ns: int) -> dict[s
         "stamp_ns": int(stamp_ns),
         "publish_ns": int(publish_ns),
         "latency_ns": int(publish_ns - stamp_ns),
-        "frame_id": "rig",
-        "child_frame_id": "robot",
+        "frame_id": frame_id,
+        "child_frame_id": child_frame_id,
         "valid": bool(pose.valid),
         "reason": pose.reason,
         "pose": {

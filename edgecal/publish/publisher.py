@@ -17,6 +17,7 @@ import zmq
 
 from edgecal.errors import ConfigError, DeviceError
 from edgecal.publish.messages import POSE_TOPIC, STATUS_TOPIC, encode
+from edgecal.publish.sinks import FrameOutput, Sink
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +51,13 @@ def check_endpoint(endpoint: str, allow_remote: bool) -> str:
     return endpoint
 
 
-class PosePublisher:
-    """A bound PUB socket; ``send_pose``/``send_status`` return False when the socket refused the message."""
+class PosePublisher(Sink):
+    """A bound PUB socket; ``send_pose``/``send_status`` return False when the socket refused the message.
+
+    As a Sink (edgecal.publish.sinks) it sends each frame's JSON pose message and each status message.
+    """
+
+    name = "zeromq"
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, hwm: int = 4, context: zmq.Context | None = None) -> None:
         self.endpoint = endpoint
@@ -85,6 +91,14 @@ class PosePublisher:
     def send_status(self, message: dict[str, Any]) -> bool:
         """Publish a status message without waiting."""
         return self._send(STATUS_TOPIC, message)
+
+    def frame(self, out: FrameOutput) -> None:
+        """Sink interface: publish the frame's pose message."""
+        self.send_pose(out.message)
+
+    def status(self, message: dict[str, Any]) -> None:
+        """Sink interface: publish a status message."""
+        self.send_status(message)
 
     def close(self) -> None:
         """Close the socket (and the context if this publisher created it); safe to call twice."""

@@ -32,6 +32,7 @@ from edgecal.drivers.spec import SourceSpec, spec_from_config
 from edgecal.errors import ConfigError, EdgecalError
 from edgecal.pose.types import PoseSettings, QualityBounds
 from edgecal.publish.publisher import DEFAULT_ENDPOINT, check_endpoint
+from edgecal.publish.sink_settings import OUTPUT_FIELDS, OutputSettings, read_outputs
 from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
 
@@ -71,6 +72,7 @@ class LiveConfig:
     loop: LoopSettings
     rig_path: str
     tracking: TrackingSettings = TrackingSettings()
+    outputs: OutputSettings = OutputSettings()     # publish: frame names, stamps, MCAP log, Foxglove
 
 
 def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
@@ -104,7 +106,7 @@ def _read_pose(r: ConfigReader) -> PoseSettings:
 
 
 def _read_publish(r: ConfigReader) -> PublishSettings:
-    r.reject_unknown(("endpoint", "allow_remote", "hwm"))
+    r.reject_unknown(("endpoint", "allow_remote", "hwm") + OUTPUT_FIELDS)  # outputs: read_outputs
     endpoint = r.string("endpoint", DEFAULT_ENDPOINT)
     allow = r.boolean("allow_remote", False)
     try:
@@ -181,6 +183,7 @@ def load_live_config(path: str | Path) -> LiveConfig:
             raise ConfigError(f"{src}: field 'detector': {exc}") from None
     pose = _read_pose(r.section("pose", {}))
     publish = _read_publish(r.section("publish", {}))
+    outputs = read_outputs(r.section("publish", {}))
     loop = _read_loop(r.section("loop", {}))
     tracking = _read_tracking(r.section("tracking", {}))
-    return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path), tracking)
+    return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path), tracking, outputs)

@@ -28,6 +28,7 @@ from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, EdgecalError, InputError
 from edgecal.pose import Pose, estimate_pose
 from edgecal.publish import PosePublisher, pose_message, status_message
+from edgecal.publish.sinks import FrameOutput, Sink, build_sinks, close_all, fan_out
 from edgecal.stream.config import LiveConfig, load_live_config
 from edgecal.stream.notify import SystemdNotifier
 from edgecal.stream.stats import LoopStats
@@ -103,6 +104,8 @@ class LiveLoop:
         self._reload_requested = False
         self._source: Source | None = None
         self._publisher: PosePublisher | None = None
+        self._sinks: list[Sink] = []                 # the outputs beside ZeroMQ (MCAP log, Foxglove)
+        self._detections: tuple[list, list] = ([], [])   # the boards of the frame in progress, for the sinks
         # The camera and the socket are used under this lock, so that abort() (another thread, when a
         # frame takes too long after SIGTERM) can release them while the loop is busy detecting.
         self._io = threading.RLock()
@@ -156,6 +159,7 @@ class LiveLoop:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
         log.info("publishing on %s; source %s", self.config.publish.endpoint, self.config.source.uri)
         try:
+            self._sinks = build_sinks(self.config.outputs)
             self.warm_up()
             while not self._stop_requested:
                 if self._reload_requested:
@@ -276,6 +280,8 @@ class LiveLoop:
             self._report(time.monotonic_ns())
             self._publisher.close()
             self._publisher = None
+        close_all(self._sinks)
+        self._sinks = []
 
     def _close_source(self) -> None:
         with self._io:
@@ -356,6 +362,7 @@ class LiveLoop:
         # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
         left_det = self._track(frame.left.image, left_pred)
         right_det = self._track(frame.right.image, right_pred)
+        self._detections = (left_det, right_det)
         confirmed = confirmed_fraction(left_pred + right_pred, left_det + right_det)
         if confirmed < self.config.tracking.min_confirmed_fraction:
             return None
@@ -374,6 +381,7 @@ class LiveLoop:
         right = self._pool.submit(self._detect, frame.right.image, bad_right)
         left_det, bad_left = self._detect(frame.left.image, bad_left)
         right_det, bad_right = right.result()
+        self._detections = (left_det, right_det)
         problems = [p for p in (bad_left, bad_right) if p]
         if problems:
             self.stats.corrupt_frames += 1
@@ -398,6 +406,7 @@ class LiveLoop:
         bad_right = check_image(frame.right.image, size, "right")
         failed_images = 0
         tracked = False
+        self._detections = ([], [])
         try:
             pose = self._tracked_pose(frame) if bad_left is None and bad_right is None else None
             if pose is not None:
@@ -412,15 +421,19 @@ class LiveLoop:
             pose = Pose.invalid(f"internal error: {type(exc).__name__}")
             self.tracker.reset()
         now = time.monotonic_ns()
-        capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver == "replay")
-        msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now)
+        capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver in ("replay", "mcap", "rosbag"))
+        msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now, cfg.outputs.frame_id, cfg.outputs.child_frame_id)
         msg["latency_ns"] = int(now - capture_ns)
         msg["latency_from"] = _basis
         msg["quality"]["detection"] = "tracked" if tracked else "searched"
+        out = FrameOutput(frame, pose, msg, self._detections, capture_ns)
         with self._io:
-            if self._publisher is not None:
-                self._publisher.send_pose(msg)
+            fan_out(self._all_sinks(), "frame", out)
         self.stats.frame_done(now - capture_ns, pose.valid, failed_images)
+
+    def _all_sinks(self) -> list[Sink]:
+        """Every output the loop publishes to: the ZeroMQ stream and the configured sinks (under _io)."""
+        return ([self._publisher] if self._publisher is not None else []) + self._sinks
 
     def _report(self, now: int) -> None:
         """Once a period: log the figures at INFO, publish them as status, pet the watchdog."""
@@ -432,8 +445,7 @@ class LiveLoop:
                  figures["poses_invalid"], f" ({self._last_message})" if self._last_message else "")
         figures["source"] = self.config.source.uri
         with self._io:
-            if self._publisher is not None:
-                self._publisher.send_status(status_message(self.state, figures, now, self._last_message))
+            fan_out(self._all_sinks(), "status", status_message(self.state, figures, now, self._last_message))
         self.notifier.watchdog()
         self.notifier.status(f"{self.state}: {figures['fps']} fps, p99 {lat['p99']} ms")
         self._next_status_ns = now + int(self.config.loop.status_period_s * 1e9)
@@ -470,6 +482,15 @@ class LiveLoop:
                     self._publisher.close()
                     publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
                 self._publisher = publisher
+        if new.outputs != old.outputs:
+            try:
+                sinks = build_sinks(new.outputs)      # opened first: if one fails, the running ones stay
+            except EdgecalError as exc:
+                self._reload_failed(str(exc))
+                return
+            with self._io:
+                old_sinks, self._sinks = self._sinks, sinks
+            close_all(old_sinks)
         if new.source != old.source or new.loop.latest_frame_wins != old.loop.latest_frame_wins:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
