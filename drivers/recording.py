@@ -15,6 +15,7 @@ uint16, grey and BGR, bit for bit; replaying gives back the same pixels and ``st
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ import numpy as np
 from edgecal.drivers.base import Frame, Source, StereoFrame
 
 from edgecal.errors import InputError
-from edgecal.fileio import check_outputs, png_bytes, sync_paths, write_atomic
+from edgecal.fileio import check_outputs, png_bytes, read_input, sync_paths, write_atomic
 
 MANIFEST = "manifest.json"
 FORMAT = "edgecal-recording"
@@ -164,23 +165,52 @@ def record(source: Source, out_dir: str | Path, frames: int | None = None, secon
 def load_manifest(folder: str | Path) -> dict[str, Any]:
     """Read and check a recording's manifest.json; InputError naming the file on any problem."""
     path = Path(folder) / MANIFEST
+    if not path.is_file():
+        raise InputError(f"{path}: not found (is {folder} an edgecal recording?)")
+    raw = read_input(path, "recording manifest")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found (is {folder} an edgecal recording?)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        data = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: unreadable manifest ({exc})") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{path}: not an edgecal recording manifest (format must be {FORMAT!r})")
     if data.get("version") != VERSION:
-        raise InputError(f"{path}: recording version {data.get('version')!r} is not supported "
+        raise InputError(f"{path}: recording version {str(data.get('version'))[:40]!r} is not supported "
                          f"(this edgecal reads version {VERSION})")
     if data.get("layout") not in ("mono", "stereo") or not isinstance(data.get("frames"), list):
         raise InputError(f"{path}: manifest needs 'layout' (mono or stereo) and a 'frames' list")
-    keys = ("file", "stamp_ns", "seq")
+    if not isinstance(data.get("source", {}), dict):
+        raise InputError(f"{path}: 'source' must be a mapping (the recorded source's description)")
     for i, entry in enumerate(data["frames"]):
-        sides = [entry.get("left"), entry.get("right")] if data["layout"] == "stereo" else [entry]
-        for e in sides:
-            if not isinstance(e, dict) or any(k not in e for k in keys):
-                raise InputError(f"{path}: frames[{i}] lacks one of {', '.join(keys)}")
+        if data["layout"] == "stereo":
+            if not isinstance(entry, dict):
+                raise InputError(f"{path}: frames[{i}] must be a mapping with 'left' and 'right'")
+            for side in ("left", "right"):
+                _check_frame_entry(path, f"frames[{i}].{side}", entry.get(side))
+        else:
+            _check_frame_entry(path, f"frames[{i}]", entry)
     return data
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_frame_entry(path: Path, where: str, e: Any) -> None:
+    """InputError naming the manifest and the field of a frame entry that is missing or of the wrong type."""
+    if not isinstance(e, dict):
+        raise InputError(f"{path}: {where} must be a mapping with file, stamp_ns and seq")
+    for key in ("file", "stamp_ns", "seq"):
+        if key not in e:
+            raise InputError(f"{path}: {where} lacks '{key}'")
+    if not isinstance(e["file"], str) or not e["file"]:
+        raise InputError(f"{path}: {where}.file must be a file name relative to the recording")
+    for key in ("stamp_ns", "seq", "recv_ns"):
+        if key in e and not _is_int(e[key]):
+            raise InputError(f"{path}: {where}.{key} must be an integer, not {str(e[key])[:40]!r}")
+    if e.get("camera_id") is not None and not isinstance(e["camera_id"], str):
+        raise InputError(f"{path}: {where}.camera_id must be a string")
+    for key in ("exposure_us", "gain_db"):
+        v = e.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
+            raise InputError(f"{path}: {where}.{key} must be a number or null, not {str(v)[:40]!r}")

@@ -36,7 +36,7 @@ from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.recording import MANIFEST, load_manifest
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, InputError
-from edgecal.images import IMAGE_SUFFIXES, image_files
+from edgecal.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, image_files, read_image
 
 DEFAULT_FPS = 30.0
 # A rendered stereo sequence's ground truth (edgecal.synth), whose frames carry their capture stamps.
@@ -56,15 +56,10 @@ class ReplayItem:
     gain_db: float | None = None
 
 
-def read_image_file(path: Path) -> np.ndarray:
-    """The image's pixels unchanged (grey or BGR, uint8 or uint16); InputError naming the file otherwise."""
-    try:
-        data = np.fromfile(str(path), dtype=np.uint8)
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read image ({exc.strerror or exc})") from None
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if image is None:
-        raise InputError(f"{path}: not a readable image")
+def read_image_file(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
+    """The image's pixels unchanged (grey or BGR, uint8 or uint16); InputError naming the file otherwise
+    (including an image above ``max_pixels``, refused from its header before decoding)."""
+    image = read_image(path, max_pixels)
     if image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
     return image
@@ -79,8 +74,8 @@ class Unreadable:
     message: str
 
 
-def preload_images(files: Sequence[Path], where: Path | str, max_mb: float, group: int = 1
-                   ) -> list[np.ndarray | Unreadable]:
+def preload_images(files: Sequence[Path], where: Path | str, max_mb: float, group: int = 1,
+                   max_pixels: int = DEFAULT_MAX_PIXELS) -> list[np.ndarray | Unreadable]:
     """Decode ``files`` once: read-only arrays (Unreadable for a file that does not decode), in order.
 
     ``group`` files make one frame (2 for stereo pairs): the first group's decoded size times the number
@@ -100,7 +95,7 @@ def preload_images(files: Sequence[Path], where: Path | str, max_mb: float, grou
     estimated = False
     for i, path in enumerate(files):
         try:
-            image = read_image_file(path)
+            image = read_image_file(path, max_pixels)
         except InputError as exc:
             out.append(Unreadable(str(exc)))
         else:
@@ -123,14 +118,16 @@ def _preload_for(spec: SourceSpec, files: list[Path], group: int = 1) -> list[np
     """``files`` decoded (preload_images) when ``spec`` asks for a preload, else None."""
     if not spec.settings.preload:
         return None
-    return preload_images(files, Path(spec.target).expanduser(), spec.settings.preload_max_mb, group)
+    return preload_images(files, Path(spec.target).expanduser(), spec.settings.preload_max_mb, group,
+                          spec.settings.max_pixels)
 
 
-def _frame_image(images: list[np.ndarray | Unreadable] | None, index: int, file: Path) -> np.ndarray:
+def _frame_image(images: list[np.ndarray | Unreadable] | None, index: int, file: Path,
+                 max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
     """Frame ``index``'s image: the preloaded array (a file that did not decode raises its InputError
     anew, as a per-frame decode would), or ``file`` decoded now when nothing was preloaded."""
     if images is None:
-        return read_image_file(file)
+        return read_image_file(file, max_pixels)
     entry = images[index]
     if isinstance(entry, Unreadable):
         raise InputError(entry.message)
@@ -222,6 +219,11 @@ class ReplaySource(Source):
             self._cap = cv2.VideoCapture(str(self.video))
             if not self._cap.isOpened():
                 raise InputError(f"{self.video}: cannot open as a video (unsupported format or codec?)")
+            w, h = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            if w * h > self.spec.settings.max_pixels:
+                self.close()
+                raise InputError(f"{self.video}: {w}x{h} frames are {w * h / 1e6:.0f} MP, more than max_pixels "
+                                 f"({self.spec.settings.max_pixels / 1e6:g} MP); raise the source's max_pixels")
             n = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
             fps = self.spec.settings.fps or self._cap.get(cv2.CAP_PROP_FPS) or DEFAULT_FPS
             period = int(round(1e9 / fps))
@@ -263,7 +265,7 @@ class ReplaySource(Source):
         if k is None:
             return None
         item = self.items[k]
-        image = _frame_image(self._images, k, item.file)  # type: ignore[arg-type]
+        image = _frame_image(self._images, k, item.file, self.spec.settings.max_pixels)  # type: ignore[arg-type]
         shift = self._seq.passes * self._span_ns
         stamp = item.stamp_ns + shift
         self._pacer.wait(stamp)
@@ -321,7 +323,8 @@ class StereoReplaySource(StereoSource):
         seq_shift = self._seq.passes * len(self.pairs)
         frames = []
         for side, item in enumerate(self.pairs[k]):
-            frames.append((_frame_image(self._images, 2 * k + side, item.file), item))  # type: ignore[arg-type]
+            frames.append((_frame_image(self._images, 2 * k + side, item.file,  # type: ignore[arg-type]
+                                        self.spec.settings.max_pixels), item))
         self._pacer.wait(min(it.stamp_ns for _, it in frames) + shift)
         now = time.monotonic_ns()
         left, right = (Frame(img, it.stamp_ns + shift, now, it.seq + seq_shift, it.camera_id, it.exposure_us,

@@ -44,6 +44,7 @@ import yaml
 
 from edgecal.config import ConfigReader
 from edgecal.errors import ConfigError
+from edgecal.images import DEFAULT_MAX_PIXELS
 
 DRIVERS = ("replay", "v4l2", "aravis", "dc1394", "depthai", "stereo", "mcap", "rosbag")
 # Drivers that read a robot log (an MCAP file or a ROS bag): image topics by name.
@@ -58,7 +59,7 @@ COMMON_FIELDS = ("timeout_s", "camera_id", "latest_only")
 
 # Settings each driver understands (a field a driver cannot honour is an error, not silently ignored).
 DRIVER_FIELDS: dict[str, tuple[str, ...]] = {
-    "replay": ("pace", "loop", "fps", "preload", "preload_max_mb"),
+    "replay": ("pace", "loop", "fps", "preload", "preload_max_mb", "max_pixels"),
     "v4l2": ("width", "height", "fps", "pixel_format", "exposure_us", "gain", "buffers"),
     "aravis": ("width", "height", "fps", "pixel_format", "exposure_us", "gain_db", "trigger", "packet_size",
                "buffers"),
@@ -106,6 +107,7 @@ class SourceSettings:
     loop: bool = False
     preload: bool = False           # replay: decode every image once at open() (frames as a camera gives them)
     preload_max_mb: float = 2048.0  # replay: refuse a preload whose decoded frames would need more (MiB)
+    max_pixels: int = DEFAULT_MAX_PIXELS  # replay: refuse larger images (read from the header, before decoding)
     max_skew_ms: float = 5.0
     topic: str | None = None        # mcap, rosbag: the image topic of a mono source
     left: str | None = None         # mcap, rosbag: the left and right image topics of a stereo source
@@ -189,6 +191,8 @@ def _read_settings(r: ConfigReader, driver: str, skip: tuple[str, ...] = ()) -> 
         kw["preload"] = r.boolean("preload")
     if r.has("preload_max_mb"):
         kw["preload_max_mb"] = r.number("preload_max_mb", positive=True)
+    if r.has("max_pixels"):
+        kw["max_pixels"] = r.integer("max_pixels", minimum=1)
     if r.has("max_skew_ms"):
         kw["max_skew_ms"] = r.number("max_skew_ms", minimum=0, maximum=10000)
     if driver in LOG_DRIVERS:

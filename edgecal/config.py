@@ -16,6 +16,7 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 import yaml
 
 from edgecal.errors import ConfigError
+from edgecal.fileio import read_input
 
 _MISSING = object()
 
@@ -30,8 +31,9 @@ def load_yaml_mapping(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found (check the path)")
+    text = read_input(p, "config file")  # "permission denied" named as such, not as unreadable
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+        data = yaml.safe_load(text.decode("utf-8"))
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

@@ -67,11 +67,11 @@ def read_input(path: str | Path, what: str = "file", max_bytes: int | None = Non
     except PermissionError:
         raise permission_denied(p, what) from None
     except IsADirectoryError:
-        raise InputError(f"{p}: is a folder, not a {what}") from None
+        raise InputError(f"{p}: is a folder, not a file") from None
     except OSError as exc:
         raise InputError(f"{p}: cannot read the {what} ({exc.strerror or exc})") from None
     if max_bytes is not None and len(data) > max_bytes:
-        raise InputError(f"{p}: more than {max_bytes // (1 << 20)} MB; not a {what}")
+        raise InputError(f"{p}: more than {max_bytes / (1 << 20):g} MB, too big for a {what}")
     return data
 
 

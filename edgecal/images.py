@@ -1,4 +1,5 @@
-"""Loading and checking images: every failure is an InputError that names the file."""
+"""Loading and checking images: every failure is an InputError that names the file; sizes are checked
+from the header (max_pixels) before anything is decoded."""
 
 from __future__ import annotations
 
@@ -9,8 +10,13 @@ import cv2
 import numpy as np
 
 from edgecal.errors import InputError
+from edgecal.fileio import read_input
+from edgecal.imageheader import image_size
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+# The largest image read by default: 2^26 pixels (8192x8192, 64 MB grey / 192 MB BGR decoded), above
+# room for the 65 MP machine-vision sensors; a bigger file is refused before it is decoded.
+DEFAULT_MAX_PIXELS = 1 << 26
 
 
 def as_grey(image: np.ndarray, name: str = "image") -> np.ndarray:
@@ -39,20 +45,42 @@ def as_grey(image: np.ndarray, name: str = "image") -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def load_grey(path: str | Path) -> np.ndarray:
-    """Read an image file as uint8 grey; InputError naming the file if it is missing or unreadable."""
+def read_image(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
+    """An image file's pixels unchanged (grey, BGR or BGRA; uint8 or uint16).
+
+    InputError naming the file if it is missing, not readable by this user ("permission denied"), not
+    an image, or larger than ``max_pixels`` - the last read from the header, before anything is decoded
+    (a small PNG can hold GBs of pixels). A format whose header edgecal does not read is checked after
+    decoding (OpenCV's own limit, 2^30 pixels, still applies to it).
+    """
     p = Path(path)
-    if not p.exists():
-        raise InputError(f"{p}: image file not found")
-    if not p.is_file():
-        raise InputError(f"{p}: not a file")
-    data = np.fromfile(str(p), dtype=np.uint8)
-    if data.size == 0:
+    data = read_input(p, "image file")
+    if not data:
         raise InputError(f"{p}: the file is empty")
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    size = image_size(data)
+    if size is not None:
+        _check_pixels(p, size, max_pixels)
+    try:
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        image = None
     if image is None:
         raise InputError(f"{p}: not a readable image (PNG, JPEG, BMP, TIFF, PGM ...)")
-    return as_grey(image, str(p))
+    if size is None:
+        _check_pixels(p, (image.shape[1], image.shape[0]), max_pixels)
+    return image
+
+
+def _check_pixels(path: Path, size: tuple[int, int], max_pixels: int) -> None:
+    w, h = size
+    if w * h > max_pixels:
+        raise InputError(f"{path}: {w}x{h} is {w * h / 1e6:.0f} MP, more than max_pixels ({max_pixels / 1e6:g} MP); "
+                         "refused before decoding (raise --max-pixels or the source's max_pixels to read it)")
+
+
+def load_grey(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
+    """Read an image file as uint8 grey (see :func:`read_image` for the errors)."""
+    return as_grey(read_image(path, max_pixels), str(path))
 
 
 _DIGITS = re.compile(r"(\d+)")

@@ -263,7 +263,7 @@ def test_preload_refuses_more_memory_than_its_bound_before_decoding_all(tmp_path
     folder = _write_mono_folder(tmp_path / "imgs", 10, (100, 100, 3))   # 10 x 30000 bytes decoded
     decoded = []
     real = replay.read_image_file
-    monkeypatch.setattr(replay, "read_image_file", lambda p: decoded.append(p) or real(p))
+    monkeypatch.setattr(replay, "read_image_file", lambda p, *a: decoded.append(p) or real(p, *a))
     src = open_source(f"replay:{folder}?preload=true&preload_max_mb=0.1")
     with pytest.raises(InputError, match=r"imgs: preloading 10 images needs about 0\.29 MB, more than "
                                          r"preload_max_mb \(0\.1\); raise preload_max_mb or set preload: false"):

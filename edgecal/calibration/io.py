@@ -27,7 +27,7 @@ import yaml
 from edgecal.calibration.types import Calibration
 from edgecal.camera import LENS_PARAMS, CameraModel, StereoRig
 from edgecal.errors import ConfigError, InputError
-from edgecal.fileio import check_outputs, write_atomic_set
+from edgecal.fileio import check_outputs, read_input, write_atomic_set
 
 
 def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
@@ -189,76 +189,151 @@ class RigFile:
         return self.stereo is not None
 
 
+# A rig file is a few KB; anything far bigger is not one (and FileStorage would parse it all in memory).
+MAX_RIG_BYTES = 16 << 20
+
+
+def _parse_file_storage(p: Path, data: bytes) -> cv2.FileStorage:
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{p}: not an OpenCV YAML/XML calibration file (binary content)") from None
+    try:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+    except (cv2.error, SystemError):  # OpenCV reports a parse error as a SystemError from the constructor
+        fs = None
+    if fs is None or not fs.isOpened() or not fs.root().isMap():
+        raise InputError(f"{p}: not an OpenCV YAML/XML calibration file (run `edgecal calibrate` to make one)")
+    return fs
+
+
+class _RigReader:
+    """Typed access to the nodes of one rig file; every problem is a ConfigError naming file and node."""
+
+    def __init__(self, path: Path, fs: cv2.FileStorage) -> None:
+        self.path = path
+        self.fs = fs
+
+    def fail(self, name: str, what: str) -> ConfigError:
+        return ConfigError(f"{self.path}: node '{name}' {what}")
+
+    def has(self, name: str) -> bool:
+        return not self.fs.getNode(name).empty()
+
+    def matrix(self, name: str, shapes: tuple[tuple[int, int], ...] | None, required: bool = True,
+               finite: bool = True) -> np.ndarray | None:
+        """The node as a float64 matrix of one of ``shapes`` (None: any shape)."""
+        n = self.fs.getNode(name)
+        if n.empty():
+            if required:
+                raise self.fail(name, "is missing (is this a rig.yaml written by `edgecal calibrate`?)")
+            return None
+        try:
+            m = n.mat() if n.isMap() else None
+        except (cv2.error, SystemError):
+            m = None
+        if m is None:
+            raise self.fail(name, "must be an OpenCV matrix (!!opencv-matrix with rows, cols, dt, data)")
+        m = np.asarray(m, dtype=np.float64)
+        if m.ndim == 1:
+            m = m.reshape(-1, 1)
+        if shapes is not None and m.shape[:2] not in shapes:
+            want = " or ".join(f"{r}x{c}" for r, c in shapes)
+            raise self.fail(name, f"must be a {want} matrix (is {m.shape[0]}x{m.shape[1]})")
+        if finite and not np.all(np.isfinite(m)):
+            raise self.fail(name, "holds NaN or infinite values")
+        return m
+
+    def string(self, name: str, default: str) -> str:
+        n = self.fs.getNode(name)
+        if n.empty():
+            return default
+        if not n.isString():
+            raise self.fail(name, "must be a string")
+        return n.string()
+
+    def image_size(self) -> tuple[int, int]:
+        name = "image_size"
+        n = self.fs.getNode(name)
+        if n.empty():
+            raise self.fail(name, "is missing (is this a rig.yaml written by `edgecal calibrate`?)")
+        try:
+            if n.isSeq():
+                values = [n.at(i).real() for i in range(n.size())]
+            else:
+                values = list(np.ravel(self.matrix(name, None)))
+        except (cv2.error, SystemError):
+            values = []
+        if len(values) != 2 or not all(np.isfinite(v) and v == int(v) and v > 0 for v in values):
+            raise self.fail(name, "must be [width, height], two positive integers")
+        return int(values[0]), int(values[1])
+
+    def camera(self, sfx: str, size: tuple[int, int]) -> CameraModel:
+        lens = self.string("distortion_model" + sfx, "radtan")
+        if lens not in LENS_PARAMS:
+            raise self.fail("distortion_model" + sfx, f"is {lens[:40]!r}; known: {', '.join(LENS_PARAMS)}")
+        k = self.matrix("camera_matrix" + sfx, ((3, 3),))
+        if not (k[0, 0] > 0 and k[1, 1] > 0):
+            raise self.fail("camera_matrix" + sfx, f"must have positive focal lengths (fx {k[0, 0]:g}, fy {k[1, 1]:g})")
+        if k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
+            raise self.fail("camera_matrix" + sfx, "must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+        d = self.matrix("dist_coeffs" + sfx, None)
+        if min(d.shape[:2]) > 1:
+            raise self.fail("dist_coeffs" + sfx, f"must be a row of coefficients (is {d.shape[0]}x{d.shape[1]})")
+        d = np.ravel(d)
+        n_params = len(LENS_PARAMS[lens])
+        # radtan files may carry OpenCV's longer vectors (8, 12, 14) with the extra terms zero
+        if len(d) > n_params and (lens != "radtan" or np.any(d[n_params:] != 0)):
+            raise self.fail("dist_coeffs" + sfx, f"has {len(d)} numbers; the {lens} model has {n_params}")
+        return CameraModel(k[0, 0], k[1, 1], k[0, 2], k[1, 2], lens, d[:n_params], size)
+
+
 def load_rig(path: str | Path) -> RigFile:
     """Read a rig.yaml written by :func:`write_calibration` (or any file with the same OpenCV nodes).
 
-    Raises InputError for a missing or unreadable file and ConfigError naming a missing or wrong node.
+    Raises InputError for a missing file, one this user may not read ("permission denied") or one that is
+    not an OpenCV FileStorage file, and ConfigError naming the node that is missing, of the wrong shape,
+    not finite, or not physical (focal lengths <= 0, R not a rotation, a zero baseline).
     """
     p = Path(path)
-    if not p.is_file():
+    if not p.is_file() and not p.is_dir():
         raise InputError(f"{p}: calibration file not found (run `edgecal calibrate` first)")
+    fs = _parse_file_storage(p, read_input(p, "calibration file", max_bytes=MAX_RIG_BYTES))
     try:
-        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-    except cv2.error:
-        raise InputError(f"{p}: not a readable OpenCV YAML/XML calibration file") from None
-    if not fs.isOpened():
-        raise InputError(f"{p}: not a readable OpenCV YAML/XML calibration file")
-    try:
-        def node(name: str, shape: tuple[int, ...] | None, required: bool = True) -> np.ndarray | None:
-            n = fs.getNode(name)
-            if n.empty():
-                if required:
-                    raise ConfigError(f"{p}: node '{name}' is missing")
-                return None
-            m = n.mat()
-            if m is None:
-                raise ConfigError(f"{p}: node '{name}' must be an OpenCV matrix")
-            m = np.asarray(m, dtype=np.float64)
-            if shape is not None and m.size != int(np.prod(shape)):
-                raise ConfigError(f"{p}: node '{name}' must hold {int(np.prod(shape))} numbers (has {m.size})")
-            return m.reshape(shape) if shape is not None else m
-
-        size_node = fs.getNode("image_size")
-        if size_node.empty():
-            raise ConfigError(f"{p}: node 'image_size' is missing")
-        if size_node.isSeq():
-            size = [int(size_node.at(i).real()) for i in range(size_node.size())]
-        else:
-            size = [int(v) for v in np.ravel(size_node.mat())]
-        if len(size) != 2 or min(size) <= 0:
-            raise ConfigError(f"{p}: node 'image_size' must be [width, height]")
-        stereo = not fs.getNode("camera_matrix_left").empty()
-        sfx = ("_left", "_right") if stereo else ("",)
+        r = _RigReader(p, fs)
+        size = r.image_size()
+        stereo = r.has("camera_matrix_left")
         cams, stds = [], []
-        for s in sfx:
-            model = fs.getNode("distortion_model" + s)
-            lens = "radtan" if model.empty() else model.string()
-            if lens not in LENS_PARAMS:
-                raise ConfigError(f"{p}: node 'distortion_model{s}' is {lens[:40]!r}; known: {', '.join(LENS_PARAMS)}")
-            k = node("camera_matrix" + s, (3, 3))
-            d = np.ravel(node("dist_coeffs" + s, None))
-            n_params = len(LENS_PARAMS[lens])
-            if len(d) > n_params and (lens != "radtan" or np.any(d[n_params:] != 0)):
-                raise ConfigError(f"{p}: node 'dist_coeffs{s}' has {len(d)} numbers; the {lens} model has {n_params}")
-            cam = CameraModel(k[0, 0], k[1, 1], k[0, 2], k[1, 2], lens, d[:n_params], (size[0], size[1]))
+        for sfx in ("_left", "_right") if stereo else ("",):
+            cam = r.camera(sfx, size)
             cams.append(cam)
-            std = node("intrinsics_std" + s, None, required=False)
+            # NaN is allowed here: it marks a term that was held fixed
+            std = r.matrix("intrinsics_std" + sfx, None, required=False, finite=False)
             stds.append({n: float(v) for n, v in zip(cam.intrinsic_names, np.ravel(std))} if std is not None else {})
-        rig = RigFile((size[0], size[1]), cams, stds)
+        rig = RigFile(size, cams, stds)
         if stereo:
-            rotation = node("R", (3, 3))
-            if abs(np.linalg.det(rotation) - 1) > 1e-6:
-                raise ConfigError(f"{p}: node 'R' is not a rotation matrix")
-            rig.stereo = StereoRig(cams[0], cams[1], rotation, node("T", (3,)))
-            rig.rotation_std_rad = node("R_std_rad", (3,), required=False)
-            rig.translation_std_m = node("T_std_m", (3,), required=False)
-            for name in ("R1", "R2", "P1", "P2", "Q"):
-                m = node(name, None, required=False)
+            rotation = r.matrix("R", ((3, 3),))
+            rt = rotation @ rotation.T
+            if abs(np.linalg.det(rotation) - 1) > 1e-6 or not np.allclose(rt, np.eye(3), atol=1e-6):
+                raise r.fail("R", "is not a rotation matrix (R R^T = I, det R = 1)")
+            translation = np.ravel(r.matrix("T", ((3, 1), (1, 3))))
+            if not np.linalg.norm(translation) > 0:
+                raise r.fail("T", "is zero: a stereo rig needs a baseline")
+            rig.stereo = StereoRig(cams[0], cams[1], rotation, translation)
+            std_r = r.matrix("R_std_rad", ((3, 1), (1, 3)), required=False, finite=False)
+            std_t = r.matrix("T_std_m", ((3, 1), (1, 3)), required=False, finite=False)
+            rig.rotation_std_rad = None if std_r is None else np.ravel(std_r)
+            rig.translation_std_m = None if std_t is None else np.ravel(std_t)
+            for name, shape in (("R1", (3, 3)), ("R2", (3, 3)), ("P1", (3, 4)), ("P2", (3, 4)), ("Q", (4, 4))):
+                m = r.matrix(name, (shape,), required=False)
                 if m is not None:
                     rig.extra[name] = m
         prov = fs.getNode("provenance")
         if not prov.empty() and prov.isMap():
-            rig.provenance = _read_node(prov)
+            try:
+                rig.provenance = _read_node(prov)
+            except (cv2.error, SystemError):
+                raise r.fail("provenance", "cannot be read") from None
         return rig
     finally:
         fs.release()

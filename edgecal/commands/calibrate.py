@@ -42,9 +42,10 @@ from edgecal.calibration.views import (
     name_views,
     read_corners,
 )
+from edgecal.commands.argtypes import pixel_count, positive_float
 from edgecal.errors import CalibrationRejected, ConfigError, EdgecalError, InputError
 from edgecal.fileio import check_outputs
-from edgecal.images import expand_image_args, load_grey
+from edgecal.images import DEFAULT_MAX_PIXELS, expand_image_args, load_grey
 from edgecal.progress import Progress
 from edgecal.targets import Target, load_target, parse_board_spec
 
@@ -63,7 +64,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--target", help="target YAML (configs/targets/*.yaml)")
     src.add_argument("--board", help="flat board of COLSxROWS inner corners, e.g. 9x6 (planar multi-view)")
-    p.add_argument("--square-mm", type=float, help="square size in mm (with --board)")
+    p.add_argument("--square-mm", type=positive_float, help="square size in mm (with --board)")
     views = p.add_mutually_exclusive_group(required=True)
     views.add_argument("--left", nargs="+", help="left (or only) camera image(s), a folder, or an edgecal "
                                                  "recording folder (edgecal collect/record)")
@@ -81,6 +82,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--config", help="calibration settings (default: the packaged configs/calibration.yaml)")
     p.add_argument("--distortion", choices=tuple(DISTORTION_MODELS), help="override the config's distortion model")
     p.add_argument("--force", action="store_true", help="replace existing output files")
+    p.add_argument("--max-pixels", type=pixel_count, default=DEFAULT_MAX_PIXELS, metavar="N",
+                   help="refuse images of more pixels, from the header before decoding "
+                        f"(default {DEFAULT_MAX_PIXELS} = 2^26)")
     return p
 
 
@@ -139,7 +143,8 @@ def _planar_corners(dets: list, target: Target) -> CornerSet:
     return corner_set(target, list(a.corners.keys), a.corners.image_px)
 
 
-def detect_views(views: list[View], target: Target) -> tuple[list[list[CornerSet]], tuple[int, int]]:
+def detect_views(views: list[View], target: Target, max_pixels: int = DEFAULT_MAX_PIXELS
+                 ) -> tuple[list[list[CornerSet]], tuple[int, int]]:
     """Detect and assign the target in every view: corners ``[camera][view]`` and the image size.
 
     A box view's corners come from the joint assignment of both images (assign_stereo). Images of
@@ -152,7 +157,7 @@ def detect_views(views: list[View], target: Target) -> tuple[list[list[CornerSet
     with Progress("detecting", len(views)) as bar:
         for i, view in enumerate(views):
             bar.update(i, view.name)
-            images = [load_grey(f) for f in view.files]
+            images = [load_grey(f, max_pixels) for f in view.files]
             for img, f in zip(images, view.files):
                 h, w = img.shape[:2]
                 if size is None:
@@ -230,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
     if args.distortion:
         settings = replace(settings, refine=replace(settings.refine, distortion=args.distortion))
     if args.board:
-        if args.square_mm is None or args.square_mm <= 0:
+        if args.square_mm is None:
             raise ConfigError("--board needs --square-mm S, the square size in millimetres (> 0)")
         target = parse_board_spec(args.board, args.square_mm)
     else:
@@ -262,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
     if args.report:
         check_outputs([Path(args.report) / "summary.txt"], args.force, create_folders=True)
     if not args.corners:
-        corners, size = detect_views(views, target)
+        corners, size = detect_views(views, target, args.max_pixels)
     cal = solve(target, views, corners, size, settings)
     problems = acceptance_problems(cal, settings.acceptance)
     text = sys.stderr if args.json else sys.stdout

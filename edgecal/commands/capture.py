@@ -11,7 +11,7 @@ import json
 import time
 from typing import Any
 
-from edgecal.errors import InputError
+from edgecal.commands.argtypes import positive_int
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -22,7 +22,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                    "capture timestamp, interval, latency (receipt to print), age (capture to "
                                    "print, live cameras), size and the boards found.")
     p.add_argument("source", metavar="SOURCE", help="source URI, e.g. aravis:192.168.1.20 or replay:DIR")
-    p.add_argument("--frames", type=int, default=10, metavar="N", help="frames (or pairs) to grab (default 10)")
+    p.add_argument("--frames", type=positive_int, default=10, metavar="N",
+                   help="frames (or pairs) to grab (default 10)")
     p.add_argument("--out", metavar="DIR", help="also record the frames into DIR (an edgecal recording)")
     p.add_argument("--force", action="store_true", help="replace a recording already in --out DIR")
     what = p.add_mutually_exclusive_group()
@@ -79,8 +80,6 @@ def run(args: argparse.Namespace) -> int:
     from edgecal.drivers import StereoFrame, open_source
     from edgecal.drivers.recording import Recorder
     from edgecal.targets import load_target, parse_board_spec
-    if args.frames < 1:
-        raise InputError(f"--frames must be at least 1 (got {args.frames})")
     target = load_target(args.target) if args.target else parse_board_spec(args.board) if args.board else None
     prev: dict[str, int] = {}
     with open_source(args.source) as src:

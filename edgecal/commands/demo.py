@@ -24,6 +24,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
+from edgecal.commands.argtypes import positive_int
 from edgecal.errors import EdgecalError, InputError
 from edgecal.fileio import check_outputs, png_bytes, write_atomic
 
@@ -35,7 +36,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p = subparsers.add_parser("demo", help="render, detect, calibrate and stream pose from a replay (the README demo)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    p.add_argument("--frames", type=int, default=30, help="frames of the robot sequence (default 30 = 1 s)")
+    p.add_argument("--frames", type=positive_int, default=30, help="frames of the robot sequence (default 30 = 1 s)")
     p.add_argument("--seed", type=int, default=1, help="random seed of the scenes")
     p.add_argument("--force", action="store_true", help="replace the results of an earlier demo in --out")
     return p
@@ -193,8 +194,6 @@ def pose_summary(messages: list[dict], truth_file: Path) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     """Render, detect, calibrate, render the robot, stream, summarise."""
     out = Path(args.out)
-    if args.frames < 1:
-        raise InputError(f"--frames {args.frames}: must be at least 1")
     if (out / "rig.yaml").exists() and not args.force:
         raise InputError(f"{out}: holds an earlier demo (rig.yaml); use --force to replace it or another --out")
     check_outputs([out / "rig.yaml"], force=True, create_folders=True)

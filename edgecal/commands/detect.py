@@ -8,11 +8,12 @@ import sys
 import time
 from pathlib import Path
 
+from edgecal.commands.argtypes import pixel_count, positive_float
 from edgecal.detection.detector import detect_debug
 from edgecal.detection.params import DEFAULT_PARAMS_FILE_HINT, DetectorParams, load_params
-from edgecal.errors import EdgecalError, InputError
+from edgecal.errors import EdgecalError
 from edgecal.fileio import check_outputs
-from edgecal.images import expand_image_args, load_grey
+from edgecal.images import DEFAULT_MAX_PIXELS, expand_image_args, load_grey
 from edgecal.targets import Target, load_target, parse_board_spec
 
 
@@ -24,7 +25,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--target", metavar="FILE.yaml", help="target file (configs/targets/...)")
     what.add_argument("--board", metavar="CxR", help="a flat board of C x R inner corners, e.g. 9x6")
-    p.add_argument("--square-mm", type=float, default=1.0, help="square size with --board (default 1)")
+    p.add_argument("--square-mm", type=positive_float, default=1.0, help="square size with --board (default 1)")
+    p.add_argument("--max-pixels", type=pixel_count, default=DEFAULT_MAX_PIXELS, metavar="N",
+                   help="refuse images of more pixels, from the header before decoding "
+                        f"(default {DEFAULT_MAX_PIXELS} = 2^26)")
     p.add_argument("--params", metavar="FILE.yaml", help=f"detector thresholds ({DEFAULT_PARAMS_FILE_HINT})")
     p.add_argument("--draw", metavar="DIR", help="write an overlay PNG per image into DIR")
     p.add_argument("--force", action="store_true", help="overwrite existing overlays in --draw DIR")
@@ -35,8 +39,6 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def _target(args: argparse.Namespace) -> Target:
     if args.target:
         return load_target(args.target)
-    if args.square_mm <= 0:
-        raise InputError(f"--square-mm must be greater than 0 (got {args.square_mm})")
     return parse_board_spec(args.board, args.square_mm)
 
 
@@ -52,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     failed = 0
     for path in expand_image_args(args.images):
         try:
-            grey = load_grey(path)
+            grey = load_grey(path, args.max_pixels)
         except EdgecalError as exc:
             print(f"edgecal: error: {exc}", file=sys.stderr)
             failed += 1

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from edgecal.errors import InputError
+from edgecal.commands.argtypes import positive_float, positive_int
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -23,8 +23,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--image", choices=("raw", "png", "jpeg"), default="raw",
                    help="MCAP only: Image messages (raw, default) or CompressedImage (png lossless, jpeg 8-bit)")
     limit = p.add_mutually_exclusive_group()
-    limit.add_argument("--frames", type=int, metavar="N", help="stop after N frames (or pairs)")
-    limit.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds")
+    limit.add_argument("--frames", type=positive_int, metavar="N", help="stop after N frames (or pairs)")
+    limit.add_argument("--seconds", type=positive_float, metavar="S", help="stop after S seconds")
     p.add_argument("--force", action="store_true", help="replace a recording already in DIR (or FILE.mcap)")
     return p
 
@@ -32,10 +32,6 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Record until the limit, the end of a replay, or Ctrl-C; the manifest is written in every case."""
     from edgecal.drivers import open_source, record
-    if args.frames is not None and args.frames < 1:
-        raise InputError(f"--frames must be at least 1 (got {args.frames})")
-    if args.seconds is not None and args.seconds <= 0:
-        raise InputError(f"--seconds must be greater than 0 (got {args.seconds})")
     with open_source(args.source) as src:
         summary = record(src, args.out, frames=args.frames, seconds=args.seconds, force=args.force,
                          image_format=args.image)

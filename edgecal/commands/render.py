@@ -9,9 +9,11 @@ The JSON is the "edgecal-synth-gt/1" format of docs/synth.md.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
+from edgecal.commands.argtypes import positive_int
 from edgecal.errors import InputError
 
 SCENES = ("planar", "hard", "partial", "occluded", "multi", "negative", "box", "robot")
@@ -32,7 +34,7 @@ def _square_px(text: str) -> tuple[float, float]:
         parts = [float(v) for v in text.split(":")]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected PX or MIN:MAX, e.g. 30 or 8:150 (got {text!r})") from None
-    if len(parts) not in (1, 2) or min(parts) < 2.0:
+    if len(parts) not in (1, 2) or not all(math.isfinite(v) and v >= 2.0 for v in parts):
         raise argparse.ArgumentTypeError(f"expected PX or MIN:MAX with squares of at least 2 px (got {text!r})")
     return (parts[0], parts[-1])
 
@@ -53,7 +55,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", choices=SCENES, help="what to render")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--count", type=int, default=1, help="images, pairs or frames to render (default 1)")
+    p.add_argument("--count", type=positive_int, default=1, help="images, pairs or frames to render (default 1)")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed renders the same images")
     p.add_argument("--size", type=_size, default=None,
                    help="image size WIDTHxHEIGHT (default 640x480; box, robot and multi 1280x800)")
@@ -71,8 +73,6 @@ def run(args: argparse.Namespace) -> int:
     """Render ``--count`` items of the scene into ``--out``."""
     from edgecal.synth import scenes, writer
 
-    if args.count < 1:
-        raise InputError(f"--count {args.count}: must be at least 1")
     big = (1280, 800)
     size = args.size or (big if args.scene in ("box", "robot", "multi") else (640, 480))
     phot = args.photometric or ("clean" if args.scene == "robot" else "normal")
