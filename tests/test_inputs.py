@@ -127,7 +127,7 @@ def test_a_good_rig_still_loads(tmp_path):
     from edgecal.calibration.io import load_rig
     rig = load_rig(write_rig(tmp_path / "rig.yaml", _with(P1=np.hstack([K, np.zeros((3, 1))]))))
     assert rig.is_stereo and rig.image_size == (1280, 800) and rig.extra["P1"].shape == (3, 4)
-    assert np.allclose(rig.translation_m, [-0.1, 0, 0])
+    assert np.allclose(rig.stereo.t_right_left_m, [-0.1, 0, 0])
 
 
 def test_load_rig_errors_are_edgecal_errors(tmp_path):
