@@ -9,6 +9,9 @@ Cases, each next to a reference that reads the same data without edgecal in the 
   ``cv2.imdecode`` loop over the same files (frames per second; the ratio is edgecal's overhead);
 * replay paced in real time at --fps: regularity of the delivery times (median interval vs the nominal
   period, p99 jitter = 99th percentile of |interval - period|) and latency from the frame's due time;
+* MCAP, as fast as possible: edgecal's ``mcap:`` source over the same frames written as ROS 2
+  sensor_msgs/msg/Image (mono8) and as CompressedImage (JPEG), vs a bare loop of the ``mcap`` reader
+  with mcap-ros2-support's decoder and the same pixel conversion (np.frombuffer / cv2.imdecode);
 * the Aravis fake GigE Vision camera (arv-fake-gv-camera-0.8 on 127.0.0.1, 512x512 Mono8) at --fps:
   edgecal's AravisSource vs a bare libaravis pop loop. Latency is wall clock at delivery minus the
   camera's timestamp: the fake camera stamps frames with the host's wall clock, so the difference is
@@ -34,7 +37,6 @@ from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
-
 from edgecal.drivers import open_source  # noqa: E402
 
 LOCK = Path("/tmp/edgecal-arv-fake-gv.lock")   # shared with the tests: one fake camera at a time
@@ -176,6 +178,53 @@ def bench_aravis(n: int, fps: float) -> None:
           "(the mapped clock sits at the fastest frame's transport delay)")
 
 
+def write_mcap_sequence(path: Path, files: list[Path], fmt: str) -> None:
+    """The PNG sequence as an MCAP file of Image (``fmt`` raw) or CompressedImage (jpeg) messages on /cam."""
+    from edgecal.mcap_writer import McapLogWriter
+    from edgecal.ros_messages import compressed_image_message, image_message
+    with McapLogWriter(path, force=True) as w:
+        for i, p in enumerate(files):
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            stamp = 10**18 + i * 33_333_333
+            msg = image_message(img, stamp, "cam") if fmt == "raw" else compressed_image_message(img, stamp, "cam")
+            w.write("/cam", msg, stamp)
+
+
+def _bare_mcap(path: Path) -> int:
+    """Frames of /cam decoded by the mcap libraries alone, pixels made an array as edgecal does."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    n = 0
+    with path.open("rb") as f:
+        for _, _, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(topics=["/cam"]):
+            if hasattr(msg, "encoding"):
+                np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)[:, :msg.width].copy()
+            else:
+                cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+            n += 1
+    return n
+
+
+def bench_mcap(tmp: Path, files: list[Path], repeat: int = 3) -> None:
+    """edgecal's mcap: source vs the bare mcap reader loop, raw and JPEG, medians of ``repeat`` runs each."""
+    for fmt in ("raw", "jpeg"):
+        path = tmp / f"seq-{fmt}.mcap"
+        write_mcap_sequence(path, files, fmt)
+        ours, ref = [], []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            n_ref = _bare_mcap(path)
+            ref.append(n_ref / (time.perf_counter() - t0))
+            t0 = time.perf_counter()
+            with open_source(f"mcap:{path}?topic=/cam&pace=fast") as src:
+                n = sum(1 for _ in src)
+            ours.append(n / (time.perf_counter() - t0))
+        assert n == n_ref == len(files)
+        o, r = float(np.median(ours)), float(np.median(ref))
+        print(f"mcap {fmt:4s}        edgecal {o:7.1f} fps   bare mcap reader loop {r:7.1f} fps   ratio {o / r:.2f}   "
+              f"({path.stat().st_size / len(files) / 1024:.0f} KiB per frame)")
+
+
 def main() -> None:
     """Run every case and print one block each."""
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -189,6 +238,7 @@ def main() -> None:
         files = render_sequence(folder, args.frames)
         bench_replay_fast(folder, files)
         bench_replay_paced(folder, args.fps, args.frames)
+        bench_mcap(Path(tmp), files)
     if not args.no_aravis:
         bench_aravis(args.frames, args.fps)
         bench_aravis(args.frames * 2, 100.0)

@@ -221,6 +221,9 @@ def test_a_failing_sink_does_not_stop_the_others() -> None:
     ({"frame_id": "my rig"}, "publish.frame_id"),
     ({"child_frame_id": "rig"}, "publish.child_frame_id"),
     ({"stamp": "gps"}, "publish.stamp"),
+    ({"foxglove": {"host": "0.0.0.0"}}, "publish.foxglove.host"),
+    ({"foxglove": {"port": 70000}}, "publish.foxglove.port"),
+    ({"foxglove": {"rate": 3}}, "publish.foxglove.rate"),
 ])
 def test_bad_output_fields_are_named(sequence: tuple[Path, dict], tmp_path: Path, publish: dict, field: str) -> None:
     folder, _ = sequence

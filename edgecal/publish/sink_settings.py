@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 from edgecal.config import ConfigReader
 
-OUTPUT_FIELDS = ("frame_id", "child_frame_id", "stamp", "record")
+OUTPUT_FIELDS = ("frame_id", "child_frame_id", "stamp", "record", "foxglove")
 STAMPS = ("monotonic", "realtime")
 _FRAME_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_./-]*$")   # a tf2 frame name: no spaces, no leading '/'
 
@@ -119,4 +119,5 @@ def read_outputs(r: ConfigReader) -> OutputSettings:
     child = _frame_name(r, "child_frame_id", d.child_frame_id)
     if child == frame_id:
         raise r.fail("child_frame_id", f"must differ from frame_id ({frame_id})")
-    return OutputSettings(frame_id, child, r.string("stamp", d.stamp, choices=STAMPS), _read_record(r))
+    return OutputSettings(frame_id, child, r.string("stamp", d.stamp, choices=STAMPS), _read_record(r),
+                          _read_foxglove(r))
