@@ -22,6 +22,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
 
 from edgecal.errors import InputError
+from edgecal.fileio import permission_denied
 
 # What a broken record raises inside the libraries: their own errors, and the struct/zstd/lz4/CDR errors
 # of data that is cut short or garbled.
@@ -35,9 +36,13 @@ class McapLog(MessageLog):
         self.path = Path(path).expanduser()
         if not self.path.is_file():
             raise InputError(f"{self.path}: no such MCAP file")
-        with self.path.open("rb") as f:
-            if f.read(8) != b"\x89MCAP0\r\n":
-                raise InputError(f"{self.path}: not an MCAP file (no MCAP magic at the start)")
+        try:
+            with self.path.open("rb") as f:
+                magic = f.read(8)
+        except PermissionError:
+            raise permission_denied(self.path, "MCAP file") from None
+        if magic != b"\x89MCAP0\r\n":
+            raise InputError(f"{self.path}: not an MCAP file (no MCAP magic at the start)")
         self._topics: dict[str, TopicInfo] | None = None
         self.broken: LogCorrupt | None = None      # set by a scan that met a broken record
 

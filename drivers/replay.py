@@ -36,6 +36,7 @@ from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.recording import MANIFEST, load_manifest
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, InputError
+from edgecal.fileio import read_input
 from edgecal.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, image_files, read_image
 
 DEFAULT_FPS = 30.0
@@ -346,16 +347,17 @@ def _synth_sequence(path: Path, spec: SourceSpec) -> list[tuple[ReplayItem, Repl
     truth = path / SYNTH_TRUTH
     if not truth.is_file():
         return None
+    raw = read_input(truth, "frame list")
     try:
-        data = json.loads(truth.read_text(encoding="utf-8"))
+        data = json.loads(raw.decode("utf-8"))
         entries = data["frames"]
         pairs = []
         for i, e in enumerate(entries):
             stamp, seq = int(e["stamp_ns"]), int(e.get("index", i))
             pairs.append((ReplayItem(path / e["left"], stamp, seq, f"{spec.camera_id}#left"),
                           ReplayItem(path / e["right"], stamp, seq, f"{spec.camera_id}#right")))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{truth}: cannot read the sequence's frame list ({exc}); remove it to replay the "
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{truth}: cannot read the sequence's frame list ({str(exc)[:80]}); remove it to replay the "
                          "left/ and right/ images at a nominal rate") from None
     return pairs or None
 

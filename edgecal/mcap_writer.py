@@ -71,7 +71,7 @@ class McapLogWriter:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._file = open(path, "wb")
         except PermissionError:
-            raise permission_denied(path, "write the MCAP file") from None
+            raise permission_denied(path, "MCAP file") from None
         except OSError as exc:
             raise InputError(f"{path}: cannot write ({exc.strerror or exc})") from None
         self._writer = Writer(self._file, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD)

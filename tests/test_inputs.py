@@ -159,6 +159,11 @@ def test_unreadable_inputs_say_permission_denied():
         config.write_text("acceptance:\n  max_rms_px: 1.0\n")
         rig = write_rig(root / "rig.yaml", rig_nodes())
         live = live_config(root, rig)
+        rec = _recording(root / "rec", {})
+        log = root / "log.mcap"
+        log.write_bytes(b"\x89MCAP0\r\n")
+        corners = root / "rig.corners.csv"
+        corners.write_text("# edgecal corners\n")
         for p in root.rglob("*"):
             p.chmod(0o755 if p.is_dir() else 0o644)
         cases = [
@@ -168,6 +173,10 @@ def test_unreadable_inputs_say_permission_denied():
                       "--config", str(config)]),
             (rig, ["run", "--config", str(live), "--check"]),
             (live, ["run", "--config", str(live), "--check"]),
+            (root / "frames" / "000000.png", ["capture", f"replay:{root / 'frames'}", "--frames", "1"]),
+            (rec / "manifest.json", ["capture", f"replay:{rec}", "--frames", "1"]),
+            (log, ["capture", f"mcap:{log}?topic=/camera/image_raw", "--frames", "1"]),
+            (corners, ["calibrate", "--target", BOX, "--corners", str(corners), "--out", str(root / "o.yaml")]),
         ]
         for unreadable, args in cases:
             unreadable.chmod(0o000)

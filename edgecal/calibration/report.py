@@ -12,7 +12,7 @@ from edgecal.calibration.types import Calibration
 from edgecal.calibration.views import View
 from edgecal.errors import EdgecalError
 from edgecal.fileio import check_outputs, png_bytes, write_atomic_set
-from edgecal.images import load_grey
+from edgecal.images import DEFAULT_MAX_PIXELS, load_grey
 
 VECTOR_GAIN = 20.0  # residual vectors are drawn this many times longer than they are
 
@@ -140,14 +140,14 @@ def _file_stem(view_name: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in stem)
 
 
-def _view_images(views: list[View], cal: Calibration) -> dict[tuple[int, int], np.ndarray]:
+def _view_images(views: list[View], cal: Calibration, max_pixels: int) -> dict[tuple[int, int], np.ndarray]:
     """The images of the used views that can still be read, keyed by (camera, calibration view)."""
     order = list(cal.view_index) if cal.view_index else list(range(len(cal.corners[0])))
     out = {}
     for v, i in enumerate(order):
         for c in range(len(cal.cameras)):
             try:
-                out[(c, v)] = load_grey(views[i].files[c])
+                out[(c, v)] = load_grey(views[i].files[c], max_pixels)
             except (EdgecalError, IndexError):
                 continue  # a re-solve from a corners file whose images are gone: no overlay for them
     return out
@@ -155,14 +155,14 @@ def _view_images(views: list[View], cal: Calibration) -> dict[tuple[int, int], n
 
 def write_report(cal: Calibration, views: list[View], folder: str | Path, force: bool = False,
                  problems: list[str] | None = None, bounds: Acceptance | None = None,
-                 provenance: dict | None = None) -> list[Path]:
+                 provenance: dict | None = None, max_pixels: int = DEFAULT_MAX_PIXELS) -> list[Path]:
     """Write overlays (one per camera and view, named by the view's file), the histogram, the per-board
     chart and summary.txt. Returns the paths written.
     """
     out = Path(folder)
     multi = len(views) > 1
     order = list(cal.view_index) if cal.view_index else list(range(len(cal.corners[0])))
-    images = _view_images(views, cal)
+    images = _view_images(views, cal, max_pixels)
     plan: list[tuple[Path, np.ndarray | str]] = []
     for c, name in enumerate(cal.camera_names):
         for v, cs in enumerate(cal.corners[c]):

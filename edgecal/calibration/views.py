@@ -28,6 +28,7 @@ import numpy as np
 
 from edgecal.calibration.types import CAMERA_NAMES, CornerSet
 from edgecal.errors import ConfigError, InputError
+from edgecal.fileio import permission_denied
 from edgecal.targets import Target
 
 CORNERS_FORMAT = "edgecal-corners/1"
@@ -128,6 +129,8 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise InputError(f"{p}: corners file not found (calibrate writes NAME.corners.csv beside rig.yaml)") from None
+    except PermissionError:
+        raise permission_denied(p, "corners file") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{p}: cannot read the corners file ({exc})") from None
     lines = text.splitlines()

@@ -276,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
                       corners_out if write_corners else Path(args.corners))
     if args.report:
         for p in write_report(cal, views, args.report, args.force, problems=problems,
-                              bounds=settings.acceptance, provenance=prov):
+                              bounds=settings.acceptance, provenance=prov, max_pixels=args.max_pixels):
             log.info("wrote %s", p)
     if args.json:
         print(json.dumps(calibration_json(cal, views, problems, settings.acceptance, prov)), flush=True)

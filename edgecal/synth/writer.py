@@ -1,8 +1,8 @@
 """Writing rendered views to disk: PNG + "edgecal-synth-gt/1" JSON, atomically, never clobbering.
 
-Every file is written to a temporary name in its own folder and moved into place with os.replace, so a
-reader never sees half a file. Existing files are refused (InputError naming the first one) unless
-``force`` is given; the check happens before anything is written, so a refused call writes nothing.
+Every file is written atomically with the umask's permissions (edgecal.fileio), so a reader never sees
+half a file; a robot sequence's frames are fsynced in one batch before its truth.json. Existing files
+are refused (InputError naming the first one) unless ``force`` is given; the check happens before anything is written, so a refused call writes nothing.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Iterable
 
 import numpy as np
 
-from edgecal.fileio import png_bytes, refuse_existing, write_atomic
+from edgecal.fileio import png_bytes, refuse_existing, sync_paths, write_atomic
 from edgecal.synth.scenes import RobotFrame, RobotRig, StereoView
 from edgecal.synth.view import RenderedView
 from edgecal.targets import Target
@@ -77,10 +77,12 @@ def write_robot_sequence(out_dir: str | Path, frames: Iterable[RobotFrame], rig:
     out = Path(out_dir)
     refuse_existing([out / "truth.json", out / "left", out / "right"], force)
     entries = []
+    unsynced: list[Path] = []
     for fr in frames:
         name = f"{fr.index:06d}.png"
-        write_atomic(out / "left" / name, png_bytes(fr.left.image))
-        write_atomic(out / "right" / name, png_bytes(fr.right.image))
+        for side, view in (("left", fr.left), ("right", fr.right)):
+            write_atomic(out / side / name, png_bytes(view.image), durable=False)
+            unsynced.append(out / side / name)
         entries.append({
             "index": fr.index, "stamp_ns": fr.stamp_ns, "left": f"left/{name}", "right": f"right/{name}",
             "R_rig_robot": fr.R_rig_robot.tolist(), "t_rig_robot_mm": fr.t_rig_robot_mm.tolist(),
@@ -99,6 +101,7 @@ def write_robot_sequence(out_dir: str | Path, frames: Iterable[RobotFrame], rig:
         "convention": "X_rig = R_rig_robot @ X_robot + t_rig_robot_mm; rig = left camera frame",
         "frames": entries,
     }
+    sync_paths(unsynced)  # truth.json never lists a frame that is not on the disk
     write_atomic(out / "truth.json", json_bytes(doc))
     # An overwritten (--force) longer sequence must not leave frames behind: replay reads every file.
     written = {f"{e['index']:06d}.png" for e in entries}
