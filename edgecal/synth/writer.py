@@ -2,7 +2,8 @@
 
 Every file is written atomically with the umask's permissions (edgecal.fileio), so a reader never sees
 half a file; a robot sequence's frames are fsynced in one batch before its truth.json. Existing files
-are refused (InputError naming the first one) unless ``force`` is given; the check happens before anything is written, so a refused call writes nothing.
+are refused (InputError naming the first one) unless ``force`` is given; the check happens before
+anything is written, so a refused call writes nothing.
 """
 
 from __future__ import annotations
