@@ -25,7 +25,12 @@ import scipy.sparse
 from scipy.optimize import least_squares
 
 from edgecal.calibration.checks import DegenerateInput
-from edgecal.calibration.types import CAMERA_NAMES, Calibration, CornerSet, RigidTransform
+from edgecal.calibration.types import (
+    CAMERA_NAMES,
+    Calibration,
+    CornerSet,
+    RigidTransform,
+)
 from edgecal.camera import DISTORTION_MODELS, LENS_PARAMS, CameraModel, project
 
 POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
@@ -362,6 +367,8 @@ def calibration_from_result(kind: str, image_size: tuple[int, int], corners: lis
         cal.translation_mm = np.ravel(rig.tvec).copy()
         cal.rotation_std_rad = np.array([result.std_of(f"rig1.{n}") for n in POSE_NAMES[:3]])
         cal.translation_std_mm = np.array([result.std_of(f"rig1.{n}") for n in POSE_NAMES[3:]])
+    cal.undetermined = [f"{cal.camera_names[int(n[3])]} {n.split('.', 1)[1]}" if n.startswith("cam") else n
+                        for n in result.undetermined]
     if result.rank_deficient:
         which = f" ({', '.join(result.undetermined)})" if result.undetermined else ""
         cal.notes.append(f"the corners do not determine every parameter{which} (rank-deficient Jacobian): "

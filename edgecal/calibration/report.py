@@ -30,9 +30,9 @@ def format_summary(cal: Calibration) -> str:
         k, d = cam.camera_matrix, np.ravel(cam.dist_coeffs)
         lines.append(f"{name}: fx {_pm(k[0, 0], std['fx'])}  fy {_pm(k[1, 1], std['fy'])}  "
                      f"cx {_pm(k[0, 2], std['cx'])}  cy {_pm(k[1, 2], std['cy'])} px")
-        lines.append(f"{' ' * len(name)}  " + "  ".join(
-            f"{n} {_pm(float(v), std[n], '.5f')}" for n, v in zip(("k1", "k2", "p1", "p2", "k3"), d)
-            if not np.isnan(std[n]) or v != 0))
+        lines.append(f"{' ' * len(name)}  {cam.lens} lens: " + "  ".join(
+            f"{n} {_pm(float(v), std.get(n, np.nan), '.5f')}" for n, v in zip(cam.param_names, d)
+            if not np.isnan(std.get(n, np.nan)) or v != 0))
         if name in cal.init or "camera" in cal.init:
             info = cal.init.get(name, cal.init.get("camera", {}))
             starts = [m for m in ("tsai", "dlt") if f"{m}_refined_rms_px" in info]

@@ -18,7 +18,6 @@ from edgecal.calibration.views import View
 
 JSON_FORMAT = "edgecal-calibration/1"
 INTRINSICS = ("fx", "fy", "cx", "cy")
-DISTORTION = ("k1", "k2", "p1", "p2", "k3")
 
 
 @dataclass(frozen=True)
@@ -77,7 +76,8 @@ def calibration_json(cal: Calibration, views: list[View], problems: list[str], b
     for name, cam, std in zip(cal.camera_names, cal.cameras, cal.camera_std):
         k, d = cam.camera_matrix, np.ravel(cam.dist_coeffs)
         entry = {n: _param(v, std[n]) for n, v in zip(INTRINSICS, (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))}
-        entry["distortion"] = {n: _param(v, std[n]) for n, v in zip(DISTORTION, np.r_[d, np.zeros(5)][:5])}
+        entry["lens"] = cam.lens
+        entry["distortion"] = {n: _param(v, std.get(n, math.nan)) for n, v in zip(cam.param_names, d)}
         cams[name] = entry
     doc: dict = {"format": JSON_FORMAT, "kind": cal.kind, "image_size": [int(v) for v in cal.image_size],
                  "verdict": "refused" if problems else "accepted", "problems": list(problems),

@@ -8,6 +8,9 @@ from pathlib import Path
 from edgecal.calibration.refine import DISTORTION_MODELS, RefineOptions
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
 
+# Every lens model a calibration can fit, and "auto" (edgecal.calibration.lens_choice picks one).
+DISTORTION_CHOICES = (*DISTORTION_MODELS, "auto")
+
 
 @dataclass(frozen=True)
 class Acceptance:
@@ -55,7 +58,7 @@ def load_calibration_settings(path: str | Path | None = None) -> CalibrationSett
                       "acceptance", "planar"))
     d = RefineOptions()
     refine = RefineOptions(
-        distortion=r.string("distortion", d.distortion, choices=tuple(DISTORTION_MODELS)),
+        distortion=r.string("distortion", d.distortion, choices=DISTORTION_CHOICES),
         loss_scale_px=r.number("robust_loss_scale_px", d.loss_scale_px, positive=True),
         outlier_sigmas=r.number("outlier_sigmas", d.outlier_sigmas, minimum=2.0),
         outlier_min_px=r.number("outlier_min_px", d.outlier_min_px, minimum=0.0),

@@ -12,8 +12,19 @@ import numpy as np
 
 from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.mono import initialise_camera, relative_pose
-from edgecal.calibration.refine import RefineOptions, calibration_from_result, observations_for, refine
-from edgecal.calibration.types import Calibration, CornerSet, Reconstruction, Rectification, RigidTransform
+from edgecal.calibration.refine import (
+    RefineOptions,
+    calibration_from_result,
+    observations_for,
+    refine,
+)
+from edgecal.calibration.types import (
+    Calibration,
+    CornerSet,
+    Reconstruction,
+    Rectification,
+    RigidTransform,
+)
 from edgecal.camera import CameraModel, unproject
 from edgecal.geometry import triangulate_rays
 
@@ -75,20 +86,54 @@ def reconstruction_error(cal: Calibration) -> Reconstruction:
     return Reconstruction(float(e.mean()), float(e.std()), float(e.max()), len(e), per_board, e)
 
 
+def stereo_rectify(left: CameraModel, right: CameraModel, R_right_left: np.ndarray, t_right_left: np.ndarray,
+                   image_size: tuple[int, int]) -> tuple[np.ndarray, ...]:
+    """R1, R2, P1, P2, Q of a rig: cv2.fisheye.stereoRectify for fisheye lenses, cv2.stereoRectify else.
+
+    P2's baseline term and Q are in the unit of ``t_right_left``. Both views keep only valid pixels
+    (alpha 0 / balance 0).
+    """
+    t = np.ravel(t_right_left).reshape(3, 1).astype(np.float64)
+    size = (int(image_size[0]), int(image_size[1]))
+    if left.lens == "fisheye" and right.lens == "fisheye":
+        r1, r2, p1, p2, q = cv2.fisheye.stereoRectify(left.camera_matrix, left.dist_coeffs, right.camera_matrix,
+                                                      right.dist_coeffs, size, np.asarray(R_right_left, np.float64),
+                                                      t, flags=cv2.CALIB_ZERO_DISPARITY, balance=0.0)
+        return r1, r2, p1, p2, q
+    if left.lens == "fisheye" or right.lens == "fisheye":
+        raise DegenerateInput("rectification needs the same lens family in both cameras (fisheye with fisheye)")
+    r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(left.camera_matrix, left.dist_coeffs, right.camera_matrix,
+                                                right.dist_coeffs, size, np.asarray(R_right_left, np.float64), t,
+                                                alpha=0)
+    return r1, r2, p1, p2, q
+
+
+def rectification_maps(camera: CameraModel, R: np.ndarray, P: np.ndarray, image_size: tuple[int, int]
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps (x, y as float32 images) of one camera into its rectified image (R, P of stereo_rectify)."""
+    size = (int(image_size[0]), int(image_size[1]))
+    if camera.lens == "fisheye":
+        return cv2.fisheye.initUndistortRectifyMap(camera.camera_matrix, camera.dist_coeffs, R, P, size, cv2.CV_32FC1)
+    return cv2.initUndistortRectifyMap(camera.camera_matrix, camera.dist_coeffs, R, P, size, cv2.CV_32FC1)
+
+
+def rectified_rows(q: np.ndarray, camera: CameraModel, R: np.ndarray) -> np.ndarray:
+    """Rectified normalised y of pixels (N, 2): the ray through each, rotated by R (any lens model)."""
+    v = unproject(q, camera) @ np.asarray(R, dtype=np.float64).T
+    return v[:, 1] / v[:, 2]
+
+
 def rectify(cal: Calibration) -> Rectification:
-    """cv2.stereoRectify of the calibrated rig and the vertical disparity of the rectified corners (in
-    pixels of the original cameras)."""
-    (k1, d1), (k2, d2) = [(c.camera_matrix, c.dist_coeffs) for c in cal.cameras]
-    r1, r2, p1, p2, q, _, _ = cv2.stereoRectify(k1, d1, k2, d2, tuple(cal.image_size), cal.rotation,
-                                                np.ravel(cal.translation_mm).reshape(3, 1), alpha=0)
+    """The rectification of the calibrated rig (stereo_rectify) and the vertical disparity of the rectified
+    corners (in pixels of the original cameras)."""
+    left, right = cal.cameras
+    r1, r2, p1, p2, q = stereo_rectify(left, right, cal.rotation, cal.translation_mm, cal.image_size)
     dy = []
     for v in range(len(cal.view_poses)):
         px_l, px_r, _, _ = _matched(cal, v)
         if len(px_l):
             # Rectified normalised rows, scaled back to the cameras' own pixels: the rectified
             # images' focal length depends on alpha and is not what the detector saw.
-            yl = cv2.undistortPoints(px_l.reshape(-1, 1, 2), k1, d1, R=r1).reshape(-1, 2)[:, 1]
-            yr = cv2.undistortPoints(px_r.reshape(-1, 1, 2), k2, d2, R=r2).reshape(-1, 2)[:, 1]
-            dy.append((yl - yr) * 0.5 * (k1[1, 1] + k2[1, 1]))
+            dy.append((rectified_rows(px_l, left, r1) - rectified_rows(px_r, right, r2)) * 0.5 * (left.fy + right.fy))
     d = np.concatenate(dy) if dy else np.zeros(1)
     return Rectification(r1, r2, p1, p2, q, float(np.sqrt(np.mean(d ** 2))), float(np.abs(d).max()))

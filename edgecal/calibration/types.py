@@ -113,6 +113,7 @@ class Calibration:
     reconstruction: Reconstruction | None = None
     rectification: Rectification | None = None
     dropped: list[str] = field(default_factory=list)
+    undetermined: list[str] = field(default_factory=list)  # "camera k4": parameters the corners cannot fix
     notes: list[str] = field(default_factory=list)
     init: dict[str, dict[str, float]] = field(default_factory=dict)  # camera -> method -> RMS after refinement
     view_index: list[int] = field(default_factory=list)  # input image (pair) of each view, planar case

@@ -25,12 +25,12 @@ import numpy as np
 from edgecal.calibration.acceptance import acceptance_problems
 from edgecal.calibration.assign import assign, assign_stereo, symmetry_warnings
 from edgecal.calibration.io import camera_info_paths, write_calibration
+from edgecal.calibration.lens_choice import choose_lens_model
 from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.planar import calibrate_planar
-from edgecal.calibration.refine import DISTORTION_MODELS
 from edgecal.calibration.report import format_summary, write_report
 from edgecal.calibration.results import calibration_json
-from edgecal.calibration.settings import CalibrationSettings, load_calibration_settings
+from edgecal.calibration.settings import DISTORTION_CHOICES, CalibrationSettings, load_calibration_settings
 from edgecal.calibration.stereo import calibrate_box_stereo
 from edgecal.calibration.types import Calibration, CornerSet
 from edgecal.calibration.views import (
@@ -80,7 +80,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="camera_name in the camera_info files, one per camera (the name your camera driver "
                         "uses; camera_info_manager warns when it does not match)")
     p.add_argument("--config", help="calibration settings (default: the packaged configs/calibration.yaml)")
-    p.add_argument("--distortion", choices=tuple(DISTORTION_MODELS), help="override the config's distortion model")
+    p.add_argument("--distortion", choices=DISTORTION_CHOICES, help="override the config's lens model: radtan terms "
+                   "(none ... k1k2p1p2k3), rational, fisheye, or auto (the simplest the data supports)")
     p.add_argument("--force", action="store_true", help="replace existing output files")
     p.add_argument("--max-pixels", type=pixel_count, default=DEFAULT_MAX_PIXELS, metavar="N",
                    help="refuse images of more pixels, from the header before decoding "
@@ -182,7 +183,13 @@ def detect_views(views: list[View], target: Target, max_pixels: int = DEFAULT_MA
 
 def solve(target: Target, views: list[View], corners: list[list[CornerSet]], size: tuple[int, int],
           settings: CalibrationSettings) -> Calibration:
-    """Calibrate from the corners of every view; errors name the image that is missing a board."""
+    """Calibrate from the corners of every view; errors name the image that is missing a board.
+
+    ``distortion: auto`` fits each candidate lens model and keeps the simplest the data supports.
+    """
+    if settings.refine.distortion == "auto":
+        return choose_lens_model(lambda o: solve(target, views, corners, size, replace(settings, refine=o)),
+                                 settings.refine, settings.acceptance)
     names = camera_names(len(corners))
     if target.is_planar:
         if len(target.boards) != 1:
