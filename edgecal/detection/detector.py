@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from edgecal.detection.candidates import (estimate_noise_sigma, gradients, min_eigen_candidates, smooth_image,
                                           smoothing_sigma, snap_to_saddle)
 from edgecal.detection.completion import complete_grid, trim_false_edges
+from edgecal.detection.corner_covariance import corner_covariance
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
@@ -123,6 +124,8 @@ class _Level:
 
     def __init__(self, grey: np.ndarray, noise_sigma: float | None = None) -> None:
         sigma = smoothing_sigma(estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma)
+        self.grey = grey
+        self.smoothing_sigma = sigma
         self.smooth = smooth_image(grey, sigma)
         self._gradients: tuple[np.ndarray, np.ndarray] | None = None
 
@@ -146,6 +149,31 @@ Grid = dict[tuple[int, int], np.ndarray]
 def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> DetectionDebug:
     """Detect the target's boards in ``image`` and return every intermediate result (see DetectionDebug).
 
+    Every detection carries its corners' covariances (edgecal.detection.corner_covariance), computed on
+    the full-resolution image in one call over all boards.
+    """
+    debug, level = _search(image, target, params)
+    add_covariances(debug.detections, level)
+    return debug
+
+
+def add_covariances(detections: list[Detection], level: "_Level") -> None:
+    """Fill in covariance and unusable of ``detections`` (corners refined on ``level``), one call for all."""
+    if not detections:
+        return
+    xy = np.concatenate([d.corners for d in detections])
+    spacing = np.concatenate([nearest_spacing(d.corners) for d in detections])
+    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing)
+    start = 0
+    for d in detections:
+        d.covariance = cov[start:start + len(d.corners)]
+        d.unusable = reasons[start:start + len(d.corners)]
+        start += len(d.corners)
+
+
+def _search(image: np.ndarray, target: Target, params: DetectorParams | None) -> tuple[DetectionDebug, "_Level"]:
+    """The search of detect_debug; also returns the full-resolution level the corners were refined on.
+
     Large images are searched at half resolution first (a quarter of the pixel work). Boards found there are
     refined at full resolution; grids that fell short of a board there are scaled up and completed at full
     resolution. Only when a board is still missing does the full-resolution search run (the smallest
@@ -157,7 +185,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
         level = _Level(grey)
         debug, grids = _find_grids(level, p)
         _boards_from_grids(level, grids, target, p, debug)
-        return debug
+        return debug, level
 
     half_grey = cv2.pyrDown(grey)
     noise_half = estimate_noise_sigma(half_grey)
@@ -169,7 +197,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
     if _all_boards_found(half.detections, target):
         found = _refine_at_full_resolution(half, level, p)
         if found is not None:
-            return found
+            return found, level
     # pyrDown keeps the even pixels: x_full = 2 x_half.
     debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
     seeds = []
@@ -184,10 +212,10 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
         seeds.append(dict(zip(grid.keys(), xy)))
     _boards_from_grids(level, seeds, target, p, debug)
     if _all_boards_found(debug.detections, target):
-        return debug
+        return debug, level
     full, grids = _find_grids(level, p)
     _boards_from_grids(level, grids, target, p, full)
-    return full if len(full.detections) >= len(debug.detections) else debug
+    return (full if len(full.detections) >= len(debug.detections) else debug), level
 
 
 def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorParams) -> DetectionDebug | None:

@@ -27,6 +27,7 @@ import numpy as np
 
 from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
 from edgecal.detection.completion import verify_predictions
+from edgecal.detection.corner_covariance import corner_covariance
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import probe_radii
 from edgecal.detection.subpixel import nearest_spacing, subpixel_window
@@ -189,7 +190,8 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         return []
     crop = grey[y0:y1, x0:x1]
     # Noise from every 6th pixel: the crop around a robot's boards still gives thousands of samples.
-    smooth = smooth_image(crop, smoothing_sigma(estimate_noise_sigma(crop, stride=6)))
+    sigma = smoothing_sigma(estimate_noise_sigma(crop, stride=6))
+    smooth = smooth_image(crop, sigma)
     gx, gy = gradients(smooth)
     offset = np.array([x0, y0], dtype=np.float64)
 
@@ -213,19 +215,27 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(good)):
             continue
         if square_colours_match(pr.ids[good], refined[good], smooth, p.min_contrast):
-            kept.append((pr, pr.ids[good], refined[good], quality[good], float(np.median(sp))))
+            kept.append((pr, pr.ids[good], refined[good], quality[good], float(np.median(sp)), sp[good]))
     # ... and no corners one square beyond their sides (all boards in one call; probed at half the square
     # size, a ring of 0.3 squares: beyond the outer corners lie the margin and, a third of a square
     # further, whatever the board is glued on - a full-size ring could see four sectors alternate there).
-    beyond = [beyond_border(ids, xy, pr.board.cols, pr.board.rows) for pr, ids, xy, _q, _s in kept]
+    beyond = [beyond_border(ids, xy, pr.board.cols, pr.board.rows) for pr, ids, xy, _q, _s, _sp in kept]
     checks = _verify_boards(smooth, gx, gy, [b[0] for b in beyond],
                             [np.full(len(b[0]), 0.5 * k[4]) for b, k in zip(beyond, kept)], p, False)
-    found = []
-    for (pr, ids, xy, quality, _s), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
+    found, windows = [], []
+    for (pr, ids, xy, quality, _s, sp), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
         if slipped_sides(corner, sides):
             continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
                                (board.cols, board.rows), complete=len(ids) == board.n_corners))
+        windows.append(sp[order])
+    # The corners' covariances, all boards in one call, on the crop they were refined on.
+    if found:
+        cov, reasons = corner_covariance(crop, smooth, sigma, np.concatenate([d.corners for d in found]) - offset,
+                                         np.concatenate(windows))
+        bounds = np.cumsum([0] + [len(d.corners) for d in found])
+        for d, i, j in zip(found, bounds[:-1], bounds[1:]):
+            d.covariance, d.unusable = cov[i:j], reasons[i:j]
     return found

@@ -19,6 +19,10 @@ class Detection:
     grid:    (cols, rows) of the grid that was found (equals the board's size when complete).
     copy:    0 for the first (or only) board of this name in the image, 1, 2, ... for further boards of
              the same size, numbered by position (centroid top to bottom, then left to right).
+    covariance: (N, 2, 2) float64 px^2 per corner (edgecal.detection.corner_covariance), NaN where the
+             corner is unusable; None when not computed (a Detection built by hand).
+    unusable: (N,) reasons, "" for a usable corner (a covariance that is not positive definite: a flat,
+             saturated or degenerate window, a window leaving the image).
     """
 
     board: str
@@ -28,15 +32,31 @@ class Detection:
     grid: tuple[int, int]
     complete: bool = True
     copy: int = 0
+    covariance: np.ndarray | None = None
+    unusable: list[str] = field(default_factory=list)
+
+    def usable(self) -> np.ndarray:
+        """(N,) bool: corners with a positive-definite covariance (all when none was computed)."""
+        if not self.unusable:
+            return np.ones(len(self.corners), dtype=bool)
+        return np.array([r == "" for r in self.unusable], dtype=bool)
 
     def as_json(self) -> dict:
-        """The JSON form printed by ``edgecal detect``."""
-        return {
+        """The JSON form printed by ``edgecal detect``: covariance_px2 is [xx, xy, yy] per corner (px^2),
+        null for an unusable corner, which ``unusable`` lists with its reason (never NaN)."""
+        out = {
             "name": self.board,
             "copy": self.copy,
             "corners": [[round(float(x), 4), round(float(y), 4)] for x, y in self.corners],
             "ids": [[int(c), int(r)] for c, r in self.ids],
         }
+        if self.covariance is not None:
+            ok = self.usable()
+            out["covariance_px2"] = [[float(f"{c[0, 0]:.4g}"), float(f"{c[0, 1]:.4g}"), float(f"{c[1, 1]:.4g}")]
+                                     if good else None for c, good in zip(self.covariance, ok)]
+            out["unusable"] = [{"id": [int(i[0]), int(i[1])], "reason": r}
+                               for i, r in zip(self.ids, self.unusable) if r]
+        return out
 
 
 @dataclass
