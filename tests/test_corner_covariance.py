@@ -34,7 +34,10 @@ def _nees(det, truth: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("photometric", ["clean", "normal", "hard", "light"])
 def test_normalised_error_matches_the_scatter(photometric: str) -> None:
-    """Mean e^T Sigma^-1 e near 2 (a consistent 2-D covariance) over a few renders of each condition."""
+    """Mean e^T Sigma^-1 e near 2 (a consistent 2-D covariance) over a few renders of each condition.
+
+    Ten views leave the mean a wider spread than bench/corner_noise.py's 1.5-3 over 40-80 (a view's
+    corners share its light and blur); a noise-only covariance would give 5-60 here."""
     values = []
     for k in range(10):
         if photometric == "light":
@@ -48,7 +51,7 @@ def test_normalised_error_matches_the_scatter(photometric: str) -> None:
             values.append(_nees(det, view.corners(0)))
     nees = np.concatenate(values)
     assert len(nees) > 200
-    assert 1.2 < nees.mean() < 3.5, nees.mean()
+    assert 1.2 < nees.mean() < 4.0, nees.mean()
 
 
 def test_noise_term_alone_matches_noise_only_repeats() -> None:
