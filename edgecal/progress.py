@@ -24,7 +24,7 @@ def is_terminal(stream: TextIO) -> bool:
 
 def bar(fraction: float, width: int = BAR_WIDTH) -> str:
     """A bar of ``width`` characters filled to ``fraction`` (0..1), e.g. ``[######......]``."""
-    n = int(round(max(0.0, min(1.0, fraction)) * width))
+    n = int(max(0.0, min(1.0, fraction)) * width)  # full only when it is: 0.96 shows 9 of 10
     return "[" + "#" * n + "." * (width - n) + "]"
 
 

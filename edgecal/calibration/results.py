@@ -50,7 +50,7 @@ def view_results(cal: Calibration, views: list[View]) -> list[ViewResult]:
             continue
         v = used[i]
         rms, count, dropped = [], [], []
-        for c, name in enumerate(cal.camera_names):
+        for c in range(len(cal.camera_names)):
             cs, res, inl = cal.corners[c][v], cal.residuals_px[c][v], cal.inliers[c][v]
             count.append(len(cs))
             r = res[inl] if len(cs) else np.zeros((0, 2))

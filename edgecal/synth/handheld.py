@@ -19,7 +19,7 @@ from edgecal.geometry import rotation_about
 from edgecal.synth.camera import CameraModel, stereo_right_pose
 from edgecal.synth.photometric import Photometric
 from edgecal.synth.render import Panel, board_panel_extent
-from edgecal.synth.scenes import SeedLike, _fits, _photometric, _rng, _squares_outline, place_board
+from edgecal.synth.scenes import SeedLike, _fits, _photometric, _rng, _squares_outline
 from edgecal.synth.view import RenderedView, render_view
 from edgecal.targets import Board, planar_target
 
@@ -65,23 +65,51 @@ def handheld_rig(seed: SeedLike, size: tuple[int, int] = (640, 480), stereo: boo
     return HandheldRig(left, right, R, T, board)
 
 
+# Where a person takes the board, in turn: the image's middle, its four corners and four edges
+# (fractions of width and height), near and far, tilted a little and a lot.
+PLACES = ((0.5, 0.5), (0.12, 0.12), (0.88, 0.88), (0.88, 0.12), (0.12, 0.88), (0.5, 0.1), (0.1, 0.5),
+          (0.5, 0.9), (0.9, 0.5))
+TILTS_DEG = (5.0, 45.0, 25.0, 40.0)
+
+
 def _key_poses(rng: np.random.Generator, rig: HandheldRig, n: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``n`` poses (R_left_board, t_left_board_mm) spread over position, distance and tilt, all in view."""
+    """``n`` poses (R_left_board, t_left_board_mm) spread over position, distance and tilt, all in view.
+
+    Pose k goes to PLACES[k % 9] (jittered), alternately far and near, with a tilt from TILTS_DEG about a
+    random axis; where it does not fit it is pulled toward the middle and shrunk until it does.
+    """
     outline = _squares_outline(rig.board)
-    w = rig.left.size[0]
+    b = rig.board
+    w, h = rig.left.size
+    f = float(np.sqrt(rig.left.K[0, 0] * rig.left.K[1, 1]))
+    centre = np.array([(b.cols - 1) * b.square_mm / 2.0, (b.rows - 1) * b.square_mm / 2.0, 0.0])
     poses: list[tuple[np.ndarray, np.ndarray]] = []
-    sq_range = (0.035 * w, 0.09 * w)  # squares of 3.5 % .. 9 % of the width: far and near
-    while len(poses) < n:
-        sq = float(rng.uniform(*sq_range))
-        pose = place_board(rng, rig.left, rig.board, sq, tilt_max_deg=45.0, roll_deg=(-25.0, 25.0), margin_px=6.0)
-        if pose is None:
-            continue
-        R, t, _ = pose
-        if rig.right is not None:
-            Rr, tr = stereo_right_pose(R, t, rig.R_right_left, rig.T_right_left_mm)
-            if not _fits(rig.right, outline @ Rr.T + tr, 6.0)[0]:
-                continue
-        poses.append((R, t))
+    for k in range(n):
+        place = np.array(PLACES[k % len(PLACES)]) + rng.normal(0, 0.03, 2)
+        # far and near in turn; the tilt cycles on pairs of poses, so that near poses get every tilt too
+        sq = (0.022 if k % 2 == 0 else 0.1) * w * float(rng.uniform(0.9, 1.1))
+        tilt = np.radians(TILTS_DEG[(k // 2) % len(TILTS_DEG)] + float(rng.normal(0, 3.0)))
+        phi = float(rng.uniform(0, 2 * np.pi))
+        roll = np.radians(float(rng.uniform(-20.0, 20.0)))
+        R = (rotation_about(np.array([np.cos(phi), np.sin(phi), 0.0]), tilt)
+             @ rotation_about(np.array([0, 0, 1.0]), roll))
+        for _ in range(60):
+            z = f * b.square_mm / sq
+            # a stereo pair: aim so that the place is midway between the board's positions in the two images
+            shift = 0.0 if rig.right is None else 0.5 * f * float(np.linalg.norm(rig.T_right_left_mm)) / z
+            ray = rig.left.pixel_to_ray(np.array([[place[0] * (w - 1) + shift, place[1] * (h - 1)]]))[0]
+            t = ray * z - R @ centre
+            ok = np.all(np.isfinite(t)) and _fits(rig.left, outline @ R.T + t, 6.0)[0]
+            if ok and rig.right is not None:
+                Rr, tr = stereo_right_pose(R, t, rig.R_right_left, rig.T_right_left_mm)
+                ok = _fits(rig.right, outline @ Rr.T + tr, 6.0)[0]
+            if ok:
+                poses.append((R, t))
+                break
+            place = 0.5 + 0.93 * (place - 0.5)
+            sq *= 0.97
+        else:
+            raise ValueError(f"a {b.cols}x{b.rows} board does not fit a {w}x{h} image at pose {k}")
     return poses
 
 
