@@ -152,7 +152,8 @@ def test_calibrate_refuses_an_output_path_under_a_file_before_working(tmp_path):
         assert res.returncode == 2 and "blocker is a file, not a folder" in line, line
 
 
-def test_calibrate_refuses_a_read_only_folder_before_working():
+def test_read_only_output_folders_are_refused_before_working():
+    """calibrate --out/--report, record, detect --draw and render into a folder this user cannot write."""
     root = shared_folder()
     try:
         ro = root / "read-only"
@@ -161,10 +162,21 @@ def test_calibrate_refuses_a_read_only_folder_before_working():
         not_an_image.write_text("the images would be refused if they were read first")
         not_an_image.chmod(0o644)
         ro.chmod(0o555)
-        res = run_cli(["calibrate", "--target", BOX, "--left", str(not_an_image), "--out", str(ro / "rig.yaml")],
-                      cache=root)
-        line = one_error_line(res)
-        assert res.returncode == 2 and "permission denied" in line and str(ro) in line, line
-        assert "Traceback" not in res.stderr
+        frames = root / "frames"
+        frames.mkdir()
+        (frames / "000000.png").write_bytes(b"not read either")
+        cases = [
+            ["calibrate", "--target", BOX, "--left", str(not_an_image), "--out", str(ro / "rig.yaml")],
+            ["calibrate", "--target", BOX, "--left", str(not_an_image), "--out", str(root / "rig.yaml"),
+             "--report", str(ro / "report")],
+            ["detect", "--board", "9x6", "--draw", str(ro / "overlays"), str(not_an_image)],
+            ["record", f"replay:{frames}", "--out", str(ro / "recording")],
+            ["render", "planar", "--out", str(ro / "render")],
+        ]
+        for args in cases:
+            res = run_cli(args, cache=root)
+            line = one_error_line(res)
+            assert res.returncode == 2 and "permission denied" in line and str(ro) in line, (args, line)
+        assert not list(ro.iterdir())
     finally:
         shutil.rmtree(root, ignore_errors=True)

@@ -1,8 +1,10 @@
-"""Running the edgecal CLI as an unprivileged user, for the tests of permission errors.
+"""Running the edgecal CLI without root's permission bypass, for the tests of permission errors.
 
 root ignores file permissions (chmod 0500 does not stop root writing, 0000 does not stop it reading),
-and CI runs as root: there the CLI is run as ``nobody`` through ``setpriv``. Elsewhere the test user is
-unprivileged already and the CLI runs as it is.
+and CI runs as root. There the CLI runs through ``setpriv`` without the two capabilities that make the
+bypass (CAP_DAC_OVERRIDE, CAP_DAC_READ_SEARCH): still uid 0 and the owner of the test's files, but bound
+by their mode bits like any user. If that is not allowed (no CAP_SETPCAP), it runs as ``nobody``; the
+test is skipped only when neither works. An unprivileged test user runs the CLI as it is.
 """
 
 from __future__ import annotations
@@ -19,34 +21,43 @@ import pytest
 UNPRIVILEGED_UID = 65534  # nobody / nogroup on Debian
 
 
-def _command_prefix() -> list[str]:
+def _prefixes() -> list[list[str]]:
     if os.geteuid() != 0:
-        return []
+        return [[]]
     setpriv = shutil.which("setpriv")
     if setpriv is None:
         pytest.skip("running as root and setpriv is missing: cannot run the CLI without root's permission bypass")
-    return [setpriv, f"--reuid={UNPRIVILEGED_UID}", f"--regid={UNPRIVILEGED_UID}", "--clear-groups"]
+    return [[setpriv, "--bounding-set=-dac_override,-dac_read_search"],
+            [setpriv, f"--reuid={UNPRIVILEGED_UID}", f"--regid={UNPRIVILEGED_UID}", "--clear-groups"]]
 
 
 def shared_folder() -> Path:
-    """A fresh folder under /tmp that the unprivileged user can enter and write (the caller removes it)."""
+    """A fresh folder under /tmp that an unprivileged user can enter and write (the caller removes it)."""
     d = Path(tempfile.mkdtemp(prefix="edgecal-perm-"))
     d.chmod(0o777)
     return d
 
 
 def run_cli(args: list[str], cache: Path, timeout: float = 300) -> subprocess.CompletedProcess:
-    """``python -m edgecal ARGS`` as an unprivileged user; skip the test if that user cannot run this install.
+    """``python -m edgecal ARGS`` bound by file permissions; skip the test if no way to run it so works.
 
-    ``cache`` is a folder the user may write (numba's cache: the install's own __pycache__ is root's).
+    ``cache`` is a folder the user may write (numba's cache, when the user is not the install's owner).
     """
-    prefix = _command_prefix()
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache / "numba-cache"), HOME=str(cache))
-    if prefix:
-        probe = subprocess.run([*prefix, sys.executable, "-c", "import edgecal.cli"], capture_output=True, text=True,
-                               env=env, timeout=120)
-        if probe.returncode != 0:
-            pytest.skip("the unprivileged user cannot import this edgecal install (is it under a private home "
-                        f"folder?): {probe.stderr.strip().splitlines()[-1:] or probe.returncode}")
-    return subprocess.run([*prefix, sys.executable, "-m", "edgecal", *args], capture_output=True, text=True,
-                          env=env, timeout=timeout, cwd=str(cache))
+    # the probe: this install imports, and a file of mode 0000 cannot be read (the bypass is really gone)
+    probe_code = ("import sys, edgecal.cli\n"
+                  "try:\n    open(sys.argv[1])\nexcept PermissionError:\n    sys.exit(0)\nsys.exit(3)")
+    locked = cache / "probe-mode-0000"
+    locked.write_text("")
+    locked.chmod(0)
+    failures = []
+    for prefix in _prefixes():
+        if prefix:
+            probe = subprocess.run([*prefix, sys.executable, "-c", probe_code, str(locked)], capture_output=True,
+                                   text=True, env=env, timeout=120, check=False)
+            if probe.returncode != 0:
+                failures.append(f"{' '.join(prefix[1:])}: {(probe.stderr.strip().splitlines() or ['exit 3'])[-1]}")
+                continue
+        return subprocess.run([*prefix, sys.executable, "-m", "edgecal", *args], capture_output=True, text=True,
+                              env=env, timeout=timeout, cwd=str(cache), check=False)
+    pytest.skip("cannot run the CLI without root's permission bypass: " + "; ".join(failures))

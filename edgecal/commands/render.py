@@ -12,9 +12,11 @@ import argparse
 import math
 import sys
 import time
+from pathlib import Path
 
 from edgecal.commands.argtypes import positive_int
 from edgecal.errors import InputError
+from edgecal.fileio import check_outputs
 
 SCENES = ("planar", "hard", "partial", "occluded", "multi", "negative", "box", "robot")
 
@@ -73,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
     """Render ``--count`` items of the scene into ``--out``."""
     from edgecal.synth import scenes, writer
 
+    check_outputs([Path(args.out) / "truth.json"], force=True, create_folders=True)  # before rendering
     big = (1280, 800)
     size = args.size or (big if args.scene in ("box", "robot", "multi") else (640, 480))
     phot = args.photometric or ("clean" if args.scene == "robot" else "normal")
