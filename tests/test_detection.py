@@ -347,3 +347,44 @@ def test_capture_and_calibrate_refuse_a_sub_grid_alike(tmp_path, capsys, caplog)
     assert rc != 0 and not out.exists() and "Traceback" not in err
     assert "found a 9x6 grid; the target says 8x6" in caplog.text
     assert main(["calibrate", "--board", "9x6", "--square-mm", "25", "--left", *paths, "--out", str(out)]) == 0
+
+
+# --- Candidate thinning: ChESS filter and de-duplication -------------------------------------------------
+
+def test_dedupe_in_order_matches_a_plain_greedy_pass() -> None:
+    from edgecal.detection.candidates import dedupe_in_order
+
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(0, 40, size=(400, 2))
+    kept: list[int] = []
+    for i, p in enumerate(pts):
+        if all(np.hypot(*(p - pts[j])) > 1.5 for j in kept):
+            kept.append(i)
+    assert dedupe_in_order(pts, 1.5).tolist() == kept
+
+
+def test_chess_filter_keeps_board_corners_and_drops_noise() -> None:
+    from edgecal.detection.candidates import (chess_filter, chess_ring, chess_thresholds, estimate_noise_sigma,
+                                              smooth_image, smoothing_sigma)
+    from edgecal.detection.detector import CHESS_RADII_PX
+    from edgecal.synth.scenes import hard_view
+
+    rings = np.array([np.stack(chess_ring(r)) for r in CHESS_RADII_PX], dtype=np.int64)
+    kept = total = 0
+    for seed in range(3):
+        view = hard_view(seed, size=(640, 480))
+        noise = estimate_noise_sigma(view.image)
+        sigma = smoothing_sigma(noise)
+        smooth = smooth_image(view.image, sigma)
+        thr = chess_thresholds(CHESS_RADII_PX, noise, sigma, 0.9999, 6.0)
+        corners = np.rint(view.corners())
+        kept += int(chess_filter(smooth, corners, rings, thr).sum())
+        total += len(corners)
+    assert kept >= 0.97 * total, (kept, total)
+    rng = np.random.default_rng(1)
+    noise_img = np.clip(128 + 8 * rng.standard_normal((240, 320)), 0, 255).astype(np.uint8)
+    sigma = smoothing_sigma(estimate_noise_sigma(noise_img))
+    smooth = smooth_image(noise_img, sigma)
+    thr = chess_thresholds(CHESS_RADII_PX, estimate_noise_sigma(noise_img), sigma, 0.9999, 6.0)
+    pts = np.stack(np.meshgrid(np.arange(10, 310, 3), np.arange(10, 230, 3)), axis=-1).reshape(-1, 2).astype(float)
+    assert chess_filter(smooth, pts, rings, thr).mean() < 0.01

@@ -15,10 +15,10 @@ import math
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-from edgecal.detection.candidates import (estimate_noise_sigma, gradients, min_eigen_candidates, smooth_image,
-                                          smoothing_sigma, snap_to_saddle)
+from edgecal.detection.candidates import (chess_filter, chess_ring, chess_thresholds, dedupe_in_order,
+                                          estimate_noise_sigma, gradients, min_eigen_candidates,
+                                          noise_response_floor, smooth_image, smoothing_sigma, snap_to_saddle)
 from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.corner_covariance import corner_covariance
 from edgecal.detection.grouping import group_grids
@@ -37,6 +37,9 @@ MIN_HALF_SPACING_PX = 5.0
 # Completion grows a grid up to this many labels per axis whatever the board's size, so that a board that is
 # part of a larger regular grid is seen as that grid (and its size said in the note), never as a sub-grid.
 GRID_GROWTH_MAX_DIM = 40
+# ChESS rings (px) of the candidate filter: 3 px for the smallest squares, 5 px past a blurred corner's blur.
+CHESS_RADII_PX = (3.0, 5.0)
+_CHESS_RINGS = np.array([np.stack(chess_ring(r)) for r in CHESS_RADII_PX], dtype=np.int64)
 
 
 def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, radii: np.ndarray,
@@ -49,18 +52,23 @@ def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, 
                             p.min_contrast, p.min_peak_ratio)
 
 
-def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.ndarray,
-                p: DetectorParams) -> np.ndarray:
+def _first_pass(level: "_Level", cands: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Candidates accepted by the probe at r_e or, failing that, at a small or a large radius.
 
     Min-eigenvalue maxima sit 1-3 px off an X-corner (the gradient vanishes at the saddle itself), and the
-    probe needs to sit on the corner, so every candidate is snapped to its saddle first.
+    probe needs to sit on the corner, so every candidate is snapped to its saddle first. In noisy images
+    most candidates are noise: a ChESS response above what the image's noise reaches (two rings, for small
+    and for large or blurred corners) thins them before the ring pre-filter and the probe look at them.
     """
+    smooth, gx, gy = level.smooth, level.gx, level.gy
     # r_e first; a small radius for small squares; a large one for big, blurred or blooming corners.
     radii = (float(p.probe_radius_px), max(p.probe_radius_min_px, 0.5 * p.probe_radius_px),
              min(p.probe_radius_max_px, 2.0 * p.probe_radius_px))
     pts = snap_to_saddle(smooth, cands, 3)
-    pts = pts[_dedupe(pts, np.arange(len(pts)), 0.75)]
+    pts = pts[dedupe_in_order(pts, 0.75)]
+    thresholds = chess_thresholds(CHESS_RADII_PX, level.noise_sigma, level.smoothing_sigma, p.candidate_chess_quantile,
+                                  p.candidate_chess_min)
+    pts = pts[chess_filter(smooth, pts, _CHESS_RINGS, thresholds)]
     keep = np.zeros(len(pts), dtype=bool)
     for radius in radii:
         keep |= ring_prefilter(smooth, pts, np.full(len(pts), radius), p.min_contrast)
@@ -77,21 +85,6 @@ def _first_pass(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, cands: np.nd
                             max(16, p.probe_angles // 2))
         accepted[todo[ok]] = True
     return pts[accepted]
-
-
-def _dedupe(pts: np.ndarray, order: np.ndarray, radius: float = 1.0) -> np.ndarray:
-    """Indices of ``pts`` with no earlier (in ``order``) point within ``radius`` pixels."""
-    rank = np.empty(len(pts), dtype=np.int64)
-    rank[order] = np.arange(len(order))
-    drop = np.zeros(len(pts), dtype=bool)
-    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
-    if len(pairs):
-        # Of each close pair, the later one goes (greedy by rank, so chains resolve in order).
-        for i, j in pairs[np.argsort(np.minimum(rank[pairs[:, 0]], rank[pairs[:, 1]]))]:
-            if drop[i] or drop[j]:
-                continue
-            drop[j if rank[j] > rank[i] else i] = True
-    return np.asarray([i for i in order if not drop[i]], dtype=np.int64)
 
 
 def _grid_span(grid: dict[tuple[int, int], np.ndarray]) -> tuple[int, int]:
@@ -123,10 +116,10 @@ class _Level:
     only refines corners found on a coarser one never needs them)."""
 
     def __init__(self, grey: np.ndarray, noise_sigma: float | None = None) -> None:
-        sigma = smoothing_sigma(estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma)
+        self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
         self.grey = grey
-        self.smoothing_sigma = sigma
-        self.smooth = smooth_image(grey, sigma)
+        self.smoothing_sigma = smoothing_sigma(self.noise_sigma)
+        self.smooth = smooth_image(grey, self.smoothing_sigma)
         self._gradients: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
@@ -246,16 +239,18 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
 def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[Grid]]:
     """Candidates, probe, sub-pixel and grouping on one level: the accepted points and their raw grids."""
     smooth, gx, gy = level.smooth, level.gx, level.gy
-    cands, _resp = min_eigen_candidates(gx, gy, p.candidate_block_size, p.candidate_quality, p.max_candidates)
+    floor = noise_response_floor(level.noise_sigma, level.smoothing_sigma, p.candidate_block_size, p.candidate_noise_quantile)
+    cands, _resp = min_eigen_candidates(gx, gy, p.candidate_block_size, p.candidate_quality, p.max_candidates,
+                                        floor)
     debug = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
-    pts = _first_pass(smooth, gx, gy, cands, p)
+    pts = _first_pass(level, cands, p)
     if len(pts) < 4:
         return debug, []
 
     # Sub-pixel with a window from the local square size, then the probe again with its radius adapted.
     spacing = nearest_spacing(pts)
     pts = refine_corners(smooth, pts, spacing)
-    pts = pts[_dedupe(pts, np.arange(len(pts)))]
+    pts = pts[dedupe_in_order(pts, 1.0)]
     spacing = nearest_spacing(pts)
     ok, dirs, meas = _probe(smooth, gx, gy, pts, probe_radii(spacing, p), p)
     pts, dirs, meas, spacing = pts[ok], dirs[ok], meas[ok], spacing[ok]

@@ -28,6 +28,9 @@ class DetectorParams:
     min_contrast: float = 12.0
     min_peak_ratio: float = 1.6
     candidate_quality: float = 0.002
+    candidate_noise_quantile: float = 0.999
+    candidate_chess_quantile: float = 0.9999
+    candidate_chess_min: float = 6.0
     candidate_block_size: int = 3
     max_candidates: int = 6000
     min_grid_corners: int = 6
@@ -38,7 +41,8 @@ DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"
 
 _INT_FIELDS = {"probe_angles", "candidate_block_size", "max_candidates", "min_grid_corners",
                "pyramid_min_size_px"}
-_FRACTION_FIELDS = {"sign_fraction", "cross_ratio_tolerance", "candidate_quality"}
+_FRACTION_FIELDS = {"sign_fraction", "cross_ratio_tolerance", "candidate_quality", "candidate_noise_quantile",
+                    "candidate_chess_quantile"}
 
 
 def params_from_mapping(data: dict, source: str, base: DetectorParams | None = None) -> DetectorParams:
