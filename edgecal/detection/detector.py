@@ -66,8 +66,8 @@ def _first_pass(level: "_Level", cands: np.ndarray, p: DetectorParams) -> np.nda
              min(p.probe_radius_max_px, 2.0 * p.probe_radius_px))
     pts = snap_to_saddle(smooth, cands, 3)
     pts = pts[dedupe_in_order(pts, 0.75)]
-    thresholds = chess_thresholds(CHESS_RADII_PX, level.noise_sigma, level.smoothing_sigma, p.candidate_chess_quantile,
-                                  p.candidate_chess_min)
+    thresholds = chess_thresholds(CHESS_RADII_PX, level.noise_sigma, level.smoothing_sigma,
+                                  p.candidate_chess_quantile, p.candidate_chess_min)
     pts = pts[chess_filter(smooth, pts, _CHESS_RINGS, thresholds)]
     keep = np.zeros(len(pts), dtype=bool)
     for radius in radii:
@@ -239,7 +239,8 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
 def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[Grid]]:
     """Candidates, probe, sub-pixel and grouping on one level: the accepted points and their raw grids."""
     smooth, gx, gy = level.smooth, level.gx, level.gy
-    floor = noise_response_floor(level.noise_sigma, level.smoothing_sigma, p.candidate_block_size, p.candidate_noise_quantile)
+    floor = noise_response_floor(level.noise_sigma, level.smoothing_sigma, p.candidate_block_size,
+                                 p.candidate_noise_quantile)
     cands, _resp = min_eigen_candidates(gx, gy, p.candidate_block_size, p.candidate_quality, p.max_candidates,
                                         floor)
     debug = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
