@@ -8,6 +8,7 @@ summary, when there is one, gives the topic list and counts without a scan.
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 from typing import Iterator
 
@@ -20,13 +21,16 @@ from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
+from zstandard import ZstdError
 
 from edgecal.errors import InputError
 from edgecal.fileio import permission_denied
 
 # What a broken record raises inside the libraries: their own errors, and the struct/zstd/lz4/CDR errors
 # of data that is cut short or garbled.
-_READ_ERRORS = (McapError, ValueError, EOFError, IndexError, KeyError, TypeError, OSError, MemoryError)
+# (lz4 raises RuntimeError for bad frames; zstandard's ZstdError is an Exception of its own.)
+_READ_ERRORS = (McapError, ValueError, struct.error, EOFError, IndexError, KeyError, TypeError, OSError, MemoryError,
+                RuntimeError, ZstdError)
 
 
 class McapLog(MessageLog):

@@ -310,3 +310,61 @@ def test_record_stereo_to_mcap_and_formats(tmp_path: Path) -> None:
     with pytest.raises(_InputError, match="ends in .mcap"):
         from edgecal.mcap_writer import McapLogWriter
         McapLogWriter(tmp_path / "x.bag")
+
+
+def test_a_killed_ros2_recorder_is_read_up_to_the_kill(tmp_path: Path) -> None:
+    # What a killed `ros2 bag record` leaves: no metadata.yaml, an mcap file without its summary.
+    stamps = _stamps(40)
+    items = [LogImage("/cam", s, gradient(i, (240, 320))) for i, s in enumerate(stamps)]   # ~3 MiB: 3 chunks
+    bag = write_rosbag(tmp_path / "killed", items, "mcap")
+    (bag / "metadata.yaml").unlink()
+    (part,) = bag.glob("*.mcap")
+    data = part.read_bytes()
+    part.write_bytes(data[:int(len(data) * 0.8)])
+    frames = []
+    with open_source(f"rosbag:{bag}?topic=/cam&pace=fast") as src:
+        with pytest.raises(InputError, match=rf"truncated or corrupt at byte \d+ \({part.name}: "):
+            while (f := src.read()) is not None:
+                frames.append(f)
+    assert 10 < len(frames) < 40 and [f.stamp_ns for f in frames] == stamps[:len(frames)]
+    assert all(np.array_equal(f.image, gradient(i, (240, 320))) for i, f in enumerate(frames))
+
+
+def test_bags_rosbags_cannot_open_are_one_line_with_the_repair(tmp_path: Path) -> None:
+    items = [LogImage("/cam", s, gradient(i, (48, 64))) for i, s in enumerate(_stamps(20))]
+    bag1 = write_rosbag(tmp_path / "cut.bag", items, "ros1")
+    bag1.write_bytes(bag1.read_bytes()[:3000])
+    with pytest.raises(InputError, match="rosbag reindex"):
+        _read_all(f"rosbag:{bag1}?topic=/cam")
+    bag2 = write_rosbag(tmp_path / "nometa", items, "sqlite3")
+    (bag2 / "metadata.yaml").unlink()
+    with pytest.raises(InputError, match="ros2 bag reindex"):
+        _read_all(f"rosbag:{bag2}?topic=/cam")
+
+
+def test_sources_command_warns_about_a_truncated_log(tmp_path: Path) -> None:
+    path = write_mcap(tmp_path / "full.mcap", [LogImage("/cam", s, gradient(i, (48, 64))) for i, s in
+                                               enumerate(_stamps(30))], chunk_size=8000)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:len(path.read_bytes()) // 2])
+    r = _cli("sources", str(cut))
+    assert r.returncode == 0, r.stderr
+    assert "/cam" in r.stdout and "truncated or corrupt at byte" in r.stdout
+
+
+def test_garbage_anywhere_is_an_input_error_never_a_traceback(tmp_path: Path) -> None:
+    path = write_mcap(tmp_path / "g.mcap", [LogImage("/cam", s, gradient(i, (48, 64))) for i, s in
+                                            enumerate(_stamps(20))], chunk_size=8000)
+    data = path.read_bytes()
+    rng = np.random.default_rng(5)
+    for k, at in enumerate(np.linspace(16, len(data) - 40, 25).astype(int)):
+        bad = bytearray(data)
+        bad[at:at + 24] = rng.integers(0, 256, 24, dtype=np.uint8).tobytes()
+        p = tmp_path / f"g{k}.mcap"
+        p.write_bytes(bytes(bad))
+        try:
+            with open_source(f"mcap:{p}?topic=/cam&pace=fast") as src:
+                while src.read() is not None:
+                    pass
+        except InputError:
+            pass                                     # a one-line message; any other exception fails the test

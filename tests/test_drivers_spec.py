@@ -83,4 +83,7 @@ def test_packaged_example_sections_are_valid() -> None:
     reader = ConfigReader(data, str(path))
     specs = {name: spec_from_config(reader.section(name)) for name in data}
     assert specs["two_usb_cameras"].driver == "stereo" and specs["gige_camera"].settings.latest_only
-    assert {s.driver for s in specs.values()} == {"replay", "v4l2", "aravis", "dc1394", "depthai", "stereo"}
+    assert {s.driver for s in specs.values()} == {"replay", "v4l2", "aravis", "dc1394", "depthai", "stereo", "mcap",
+                                                 "rosbag"}
+    assert (specs["robot_log_stereo"].settings.left, specs["ros1_bag_mono"].settings.topic) == (
+        "/stereo/left/image_raw", "/camera/image_raw/compressed")
