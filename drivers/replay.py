@@ -223,8 +223,8 @@ class ReplaySource(Source):
             w, h = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
             if w * h > self.spec.settings.max_pixels:
                 self.close()
-                raise InputError(f"{self.video}: {w}x{h} frames are {w * h / 1e6:.0f} MP, more than max_pixels "
-                                 f"({self.spec.settings.max_pixels / 1e6:g} MP); raise the source's max_pixels")
+                raise InputError(f"{self.video}: {w}x{h} frames are {w * h / 1e6:.3g} MP, more than max_pixels "
+                                 f"({self.spec.settings.max_pixels / 1e6:.3g} MP); raise the source's max_pixels")
             n = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
             fps = self.spec.settings.fps or self._cap.get(cv2.CAP_PROP_FPS) or DEFAULT_FPS
             period = int(round(1e9 / fps))

@@ -19,6 +19,7 @@ from edgecal.errors import ConfigError
 from edgecal.fileio import read_input
 
 _MISSING = object()
+MAX_CONFIG_BYTES = 16 << 20
 
 
 def packaged_config_path(name: str) -> Path:
@@ -31,7 +32,8 @@ def load_yaml_mapping(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     if not p.is_file():
         raise ConfigError(f"{p}: config file not found (check the path)")
-    text = read_input(p, "config file")  # "permission denied" named as such, not as unreadable
+    # "permission denied" named as such, not as unreadable; a config is a few KB, never megabytes
+    text = read_input(p, "config file", max_bytes=MAX_CONFIG_BYTES)
     try:
         data = yaml.safe_load(text.decode("utf-8"))
     except yaml.YAMLError as exc:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from edgecal.errors import InputError
-from edgecal.fileio import read_input
+from edgecal.fileio import permission_denied, read_input
 from edgecal.imageheader import image_size
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
@@ -74,7 +74,7 @@ def read_image(path: str | Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.nda
 def _check_pixels(path: Path, size: tuple[int, int], max_pixels: int) -> None:
     w, h = size
     if w * h > max_pixels:
-        raise InputError(f"{path}: {w}x{h} is {w * h / 1e6:.0f} MP, more than max_pixels ({max_pixels / 1e6:g} MP); "
+        raise InputError(f"{path}: {w}x{h} is {w * h / 1e6:.3g} MP, more than max_pixels ({max_pixels / 1e6:.3g} MP); "
                          "refused before decoding (raise --max-pixels or the source's max_pixels to read it)")
 
 
@@ -98,8 +98,13 @@ def natural_key(path: str | Path) -> tuple:
 
 def image_files(folder: Path) -> list[Path]:
     """The image files of ``folder`` in natural name order (2 before 10)."""
-    return sorted((f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES),
-                  key=natural_key)
+    try:
+        names = list(folder.iterdir())
+    except PermissionError:
+        raise permission_denied(folder, "image folder") from None
+    except OSError as exc:
+        raise InputError(f"{folder}: cannot list the folder ({exc.strerror or exc})") from None
+    return sorted((f for f in names if f.is_file() and f.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
 
 
 def expand_image_args(paths: list[str]) -> list[Path]:

@@ -174,6 +174,7 @@ def test_unreadable_inputs_say_permission_denied():
             (rig, ["run", "--config", str(live), "--check"]),
             (live, ["run", "--config", str(live), "--check"]),
             (root / "frames" / "000000.png", ["capture", f"replay:{root / 'frames'}", "--frames", "1"]),
+            (root / "frames", ["detect", "--board", "9x6", str(root / "frames")]),
             (rec / "manifest.json", ["capture", f"replay:{rec}", "--frames", "1"]),
             (log, ["capture", f"mcap:{log}?topic=/camera/image_raw", "--frames", "1"]),
             (corners, ["calibrate", "--target", BOX, "--corners", str(corners), "--out", str(root / "o.yaml")]),
@@ -183,7 +184,7 @@ def test_unreadable_inputs_say_permission_denied():
             try:
                 res = run_cli(args, cache=root)
             finally:
-                unreadable.chmod(0o644)
+                unreadable.chmod(0o755 if unreadable.is_dir() else 0o644)
             line = one_error_line(res.stderr)
             assert res.returncode == 2, (args, res.stderr)
             assert str(unreadable) in line and "permission denied" in line, line
@@ -289,7 +290,7 @@ def run_measured(args: list[str]) -> tuple[int, str, int]:
 
 def test_a_huge_png_is_refused_before_decoding(huge_png, tmp_path):
     assert huge_png.stat().st_size < 1 << 20          # 400 MP in under 1 MB
-    expected = "20000x20000 is 400 MP, more than max_pixels (67.1089 MP); refused before decoding"
+    expected = "20000x20000 is 400 MP, more than max_pixels (67.1 MP); refused before decoding"
     baseline = run_measured(["detect", "--board", "9x6", str(tmp_path / "missing.png")])[2]
     frames = tmp_path / "frames"
     frames.mkdir()
@@ -309,7 +310,7 @@ def test_max_pixels_is_settable(tmp_path, capsys):
     img = tmp_path / "vga.png"
     cv2.imwrite(str(img), np.zeros((480, 640), np.uint8))
     rc, err = run_main(capsys, "detect", "--board", "9x6", "--max-pixels", "300000", str(img))
-    assert rc == 2 and "640x480 is 0 MP, more than max_pixels (0.3 MP)" in one_error_line(err)
+    assert rc == 2 and "640x480 is 0.307 MP, more than max_pixels (0.3 MP)" in one_error_line(err)
     assert run_main(capsys, "detect", "--board", "9x6", "--max-pixels", "307200", str(img))[0] == 0
     from edgecal.drivers import open_source
     from edgecal.errors import InputError
@@ -340,3 +341,18 @@ def test_unknown_or_truncated_headers_give_none():
     assert image_size(b"") is None
     assert image_size(b"\x89PNG\r\n\x1a\n\x00\x00") is None
     assert image_size(b"GIF89a....") is None
+
+
+def test_a_video_above_max_pixels_is_refused_at_open(tmp_path):
+    from edgecal.drivers import open_source
+    from edgecal.errors import InputError
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (64, 48))
+    for _ in range(3):
+        writer.write(np.zeros((48, 64, 3), np.uint8))
+    writer.release()
+    with pytest.raises(InputError, match=r"clip.avi: 64x48 frames are 0.00307 MP, more than max_pixels \(0.003 MP\)"):
+        with open_source(f"replay:{path}?max_pixels=3000"):
+            pass
+    with open_source(f"replay:{path}?max_pixels=3072") as src:
+        assert src.read().image.shape == (48, 64, 3)
