@@ -19,9 +19,17 @@ over corners, as the paper's Table 2), CPU time (ms; process time, single thread
 does not inflate it) and the ratio OpenCV / edgecal. For edgecal also the
 z-scores |error| / reported std of fx and of T (honest std: median z ~ 0.67), and Tsai vs DLT starts.
 
+Lens models (--lens-views, --lens-draws): planar stereo calibrations of simulated views (exact
+projections + 0.1 px) through a radtan, a rational and a 160 deg fisheye rig, scored against the truth
+(focal %, principal point px, largest distortion parameter error, baseline mm, |error|/σ).
+Scale (--scale 300): one planar stereo calibration of that many view pairs in a fresh process: seconds
+and peak RSS.
+
 Real sets (skipped when ../shared/data is absent): opencv_stereo_9x6 (planar multi-view, edgecal's
 detector and planar path vs OpenCV's findChessboardCorners + stereoCalibrate, against Bouguet's
-published result) and ortho3_box_stereo (one-shot, against the authors' K and T).
+published result), ortho3_box_stereo (one-shot, against the authors' K and T) and
+ocamcalib_urban_fisheye1 (edgecal's fisheye/rational models vs OpenCV's calibrateCamera default and
+rational and cv2.fisheye.calibrate on edgecal's corners). --only box|lenses|scale|real picks sections.
 """
 
 from __future__ import annotations
@@ -71,7 +79,8 @@ def _truth(pair: dict) -> dict:
     out = {}
     for side in ("left", "right"):
         c = pair[side]
-        out[side] = CameraModel.from_opencv(np.array(c["K"]), np.array(c["dist"], dtype=float))
+        out[side] = CameraModel.from_opencv(np.array(c["K"]), np.array(c["dist"], dtype=float), tuple(c["image_size"]),
+                                            c.get("lens", "radtan"))
         out[side + "_pose"] = RigidTransform.from_rt(np.array(c["R_cam_world"]), np.array(c["t_cam_world_mm"]))
     out["R"] = np.array(pair["R_right_left"])
     out["T"] = np.array(pair["T_right_left_mm"])
@@ -366,18 +375,38 @@ def main() -> int:
     p.add_argument("--json", help="also write the raw results here")
     p.add_argument("--force", action="store_true", help="replace an existing --json file")
     p.add_argument("--no-real", action="store_true", help="skip the real data sets")
+    p.add_argument("--lens-views", type=int, default=20, help="view pairs per lens-model calibration (default 20)")
+    p.add_argument("--lens-draws", type=int, default=3, help="noise draws per lens model (default 3)")
+    p.add_argument("--scale", default="300", help="view pairs of the scale runs, comma-separated (default 300)")
+    p.add_argument("--only", choices=("box", "lenses", "scale", "real"), action="append",
+                   help="run only these sections (repeatable; default all)")
+    p.add_argument("--scale-child", type=int, help=argparse.SUPPRESS)
     args = p.parse_args()
+    if args.scale_child:
+        _scale_child(args.scale_child)
+        return 0
     if args.json and Path(args.json).exists() and not args.force:
         print(f"bench/calibrate.py: error: {args.json} exists; pass --force to replace it", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    res = {"synthetic": synthetic(args)}
-    print_synthetic(res["synthetic"])
-    if not args.no_real:
+    only = set(args.only or ("box", "lenses", "scale", "real"))
+    res: dict = {}
+    if "box" in only:
+        res["synthetic"] = synthetic(args)
+        print_synthetic(res["synthetic"])
+    if "lenses" in only:
+        res["lens_models"] = lens_models(args)
+        print_lens_models(res["lens_models"], args.lens_views)
+    if "scale" in only:
+        res["scale"] = scale([int(v) for v in args.scale.split(",")])
+        print_scale(res["scale"])
+    if "real" in only and not args.no_real:
         res["bouguet"] = bouguet(args)
         print_bouguet(res["bouguet"])
         res["ortho3"] = ortho3()
         print_ortho3(res["ortho3"])
+        res["urban_fisheye1"] = urban_fisheye()
+        print_urban(res["urban_fisheye1"])
     print(f"\n(total {time.perf_counter() - t0:.0f} s, single thread, OpenCV {cv2.__version__})")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -385,6 +414,191 @@ def main() -> int:
         tmp.write_text(json.dumps(res, indent=1, default=float))
         os.replace(tmp, args.json)
     return 0
+
+
+
+# ------------------------------------------------------------------------------------------------ lens models
+
+def _planar_sim_views(left: CameraModel, right: CameraModel, rig: RigidTransform, size: tuple[int, int], n: int,
+                      noise: float, seed: int, spread: float = 1.0) -> tuple[list[CornerSet], list[CornerSet]]:
+    """``n`` stereo views of a 9x6 board (30 mm) whose corners are all in both images, exact + noise."""
+    from edgecal.calibration.simulate import look_at, project_target
+    target = planar_target(9, 6, 30.0)
+    rng = np.random.default_rng(seed)
+    centre = np.array([120.0, 75.0, 0.0])
+    out_l: list[CornerSet] = []
+    out_r: list[CornerSet] = []
+    while len(out_l) < n:
+        tilt = np.radians(rng.uniform(-45, 45, 2))
+        eye = centre + rng.uniform(300.0, 500.0) * np.array([np.sin(tilt[0]), np.sin(tilt[1]),
+                                                             -np.cos(tilt[0]) * np.cos(tilt[1])])
+        aim = centre + rng.uniform(-1, 1, 3) * np.array([220.0, 150.0, 0.0]) * spread
+        pl = look_at(eye, aim, up=np.array([0.0, -1.0, 0.0]))
+        pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
+        a = project_target(target, left, pl, size, noise, rng)
+        b = project_target(target, right, pr, size, noise, rng)
+        if len(a) == 54 and len(b) == 54:
+            out_l.append(a)
+            out_r.append(b)
+    return out_l, out_r
+
+
+def _lens_truth(lens: str) -> tuple[CameraModel, CameraModel, RigidTransform, tuple[int, int]]:
+    """The benchmark rig of a lens model, 1280x800, 80 mm baseline: radtan 70 deg, rational 95 deg, fisheye 160 deg."""
+    size = (1280, 800)
+    rot = cv2.Rodrigues(np.array([0.01, -0.03, 0.004]))[0]
+    t = np.array([-80.0, 0.5, 1.0])
+    if lens == "fisheye":
+        f = 640 / np.radians(80.0)
+        cams = [CameraModel(f, f * 1.001, 641.0, 398.0, "fisheye", np.array([0.03, -0.012, 0.004, -0.0008]), size),
+                CameraModel(f * 1.01, f * 1.011, 633.0, 404.0, "fisheye", np.array([0.028, -0.01, 0.003, -0.0005]),
+                            size)]
+    elif lens == "rational":
+        cams = [CameraModel(600.0, 600.5, 641.0, 398.0, "rational",
+                            np.array([0.4, -0.05, 0.0008, -0.0005, 0.01, 0.75, 0.02, 0.004]), size),
+                CameraModel(606.0, 606.6, 633.0, 404.0, "rational",
+                            np.array([0.38, -0.04, -0.0006, 0.0004, 0.008, 0.73, 0.025, 0.003]), size)]
+    else:
+        cams = [CameraModel(915.0, 915.6, 641.0, 398.0, "radtan", np.array([-0.21, 0.09, 0.0008, -0.0005, 0.0]), size),
+                CameraModel(925.0, 925.3, 633.0, 404.0, "radtan", np.array([-0.2, 0.08, -0.0006, 0.0004, 0.0]), size)]
+    return cams[0], cams[1], RigidTransform.from_rt(rot, t), size
+
+
+LENS_ROWS = (("radtan", "k1k2p1p2"), ("rational", "rational"), ("fisheye", "fisheye"))
+
+
+def lens_models(args: argparse.Namespace) -> dict:
+    """Planar stereo calibration per lens model on simulated views (exact projections + noise), vs truth."""
+    out: dict = {}
+    for lens, distortion in LENS_ROWS:
+        left, right, rig, size = _lens_truth(lens)
+        rows = []
+        for seed in range(args.lens_draws):
+            vl, vr = _planar_sim_views(left, right, rig, size, args.lens_views, 0.1, 100 + seed)
+            t0 = time.process_time()
+            cal = calibrate_planar(vl, vr, size, RefineOptions(distortion=distortion))
+            ms = 1e3 * (time.process_time() - t0)
+            z, row = [], {}
+            for c, truth in enumerate((left, right)):
+                est = cal.cameras[c]
+                for i, name in enumerate(truth.intrinsic_names):
+                    std = cal.camera_std[c].get(name, float("nan"))
+                    if np.isfinite(std) and std > 0:
+                        z.append(abs(est.intrinsics[i] - truth.intrinsics[i]) / std)
+            row["focal_pct"] = float(np.mean([abs(c.fx / g.fx - 1) * 100 for c, g in zip(cal.cameras, (left, right))]))
+            row["pp_px"] = float(np.mean([np.hypot(c.cx - g.cx, c.cy - g.cy) for c, g in zip(cal.cameras, (left, right))]))
+            row["dist_err_max"] = float(max(np.max(np.abs(c.params - g.params)) for c, g in zip(cal.cameras, (left, right))))
+            row["baseline_mm"] = float(np.linalg.norm(cal.translation_mm - rig.tvec))
+            zt = np.abs(cal.translation_mm - rig.tvec) / cal.translation_std_mm
+            z += list(zt)
+            row["baseline_z_max"] = float(np.max(zt))
+            row["rms_px"] = cal.rms_px
+            row["z_median"] = float(np.median(z))
+            row["ms"] = ms
+            rows.append(row)
+        out[lens] = rows
+    return out
+
+
+def print_lens_models(res: dict, views: int) -> None:
+    print(f"\n== lens models: planar stereo, {views} simulated view pairs per calibration (exact projections + 0.1 px), "
+          "1280x800, 80 mm baseline; medians over draws; |err|/σ over every intrinsic and T")
+    keys = ("focal_pct", "pp_px", "dist_err_max", "baseline_mm", "baseline_z_max", "rms_px", "z_median", "ms")
+    print(f"{'lens':<10}" + "".join(f"{k:>15}" for k in keys))
+    for lens, rows in res.items():
+        med = _median_table(rows, keys)
+        print(f"{lens:<10}" + "".join(f"{med[k]:>15.4f}" for k in keys))
+
+
+def _scale_child(n_pairs: int) -> None:
+    """One planar stereo calibration of ``n_pairs`` views (this process's peak RSS is the measure)."""
+    import resource
+    left, right, rig, size = _lens_truth("radtan")
+    vl, vr = _planar_sim_views(left, right, rig, size, n_pairs, 0.1, 7)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    t0 = time.perf_counter()
+    cal = calibrate_planar(vl, vr, size, RefineOptions(distortion="k1k2p1p2"))
+    seconds = time.perf_counter() - t0
+    print(json.dumps({"pairs": len(cal.view_index), "seconds": seconds, "rss_before_mb": rss0,
+                      "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                      "rms_px": cal.rms_px, "focal_pct": abs(cal.cameras[0].fx / left.fx - 1) * 100,
+                      "corners": 2 * 54 * len(cal.view_index)}))
+
+
+def scale(pairs: list[int]) -> list[dict]:
+    """Time and peak memory of planar stereo calibrations of many view pairs, each in a fresh process."""
+    import subprocess
+    out = []
+    for n in pairs:
+        p = subprocess.run([sys.executable, __file__, "--scale-child", str(n)], capture_output=True, text=True,
+                           check=True)
+        out.append(json.loads(p.stdout.strip().splitlines()[-1]))
+    return out
+
+
+def print_scale(res: list[dict]) -> None:
+    print("\n== scale: planar stereo calibration (k1k2p1p2, simulated 9x6 views), one fresh process each; sparse "
+          "Jacobian, scipy least_squares")
+    for r in res:
+        print(f"{r['pairs']:>5} pairs ({r['corners']} corners): {r['seconds']:.1f} s, peak RSS {r['rss_peak_mb']:.0f} MB "
+              f"({r['rss_before_mb']:.0f} MB before the calibration), RMS {r['rms_px']:.3f} px, "
+              f"focal error {r['focal_pct']:.4f} %")
+
+
+def urban_fisheye() -> dict | None:
+    """ocamcalib_urban_fisheye1 (6x8, 32.5 mm, 15 views): edgecal's lens models vs OpenCV's on edgecal's corners."""
+    from edgecal.calibration.settings import PlanarSettings
+    d = REAL / "ocamcalib_urban_fisheye1"
+    if not d.is_dir():
+        print("\n== ocamcalib_urban_fisheye1: absent, skipped")
+        return None
+    target = planar_target(6, 8, 32.5)
+    files = sorted(d.glob("Fisheye1_*.jpg"), key=lambda p: int(p.stem.split("_")[1]))
+    views = [_edgecal_corners(p, target) for p in files]
+    size = tuple(int(v) for v in load_grey(files[0]).shape[::-1])
+    full = [v for v in views if len(v) == 48]
+    out: dict = {"views_found": len(full), "views": len(files), "edgecal": {}, "opencv": {}}
+    keep_all = PlanarSettings(max_view_rms_factor=1e9)
+    for label, distortion, planar, opts in (
+            ("fisheye", "fisheye", PlanarSettings(), {}),
+            ("fisheye, every corner", "fisheye", keep_all, {"outlier_sigmas": 1e9}),
+            ("rational", "rational", PlanarSettings(), {}),
+            ("rational, every corner", "rational", keep_all, {"outlier_sigmas": 1e9}),
+            ("k1k2p1p2k3, every corner", "k1k2p1p2k3", keep_all, {"outlier_sigmas": 1e9})):
+        try:
+            cal = calibrate_planar(full, None, size, RefineOptions(distortion=distortion, **opts), planar)
+            out["edgecal"][label] = {"rms_px": cal.rms_px, "views": len(cal.view_index), "dropped": len(cal.dropped),
+                                     "fx": cal.cameras[0].fx, "fx_std": cal.camera_std[0]["fx"]}
+        except edgecal.errors.EdgecalError as exc:
+            out["edgecal"][label] = {"error": str(exc)[:120]}
+    obj = [v.object_mm.astype(np.float32) for v in full]
+    img = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in full]
+    for label, flags in (("k1k2p1p2k3", 0), ("rational", cv2.CALIB_RATIONAL_MODEL)):
+        rms, k, *_ = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
+        out["opencv"][label] = {"rms_px": float(rms), "fx": float(k[0, 0])}
+    try:
+        rms, k, *_ = cv2.fisheye.calibrate([o.reshape(-1, 1, 3).astype(np.float64) for o in obj],
+                                           [i.astype(np.float64) for i in img], size, None, None,
+                                           flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW)
+        out["opencv"]["fisheye"] = {"rms_px": float(rms), "fx": float(k[0, 0])}
+    except cv2.error as exc:
+        out["opencv"]["fisheye"] = {"error": str(exc).strip().splitlines()[-1][:120]}
+    return out
+
+
+def print_urban(res: dict | None) -> None:
+    if res is None:
+        return
+    print(f"\n== ocamcalib_urban_fisheye1 (1032x778, 6x8, 32.5 mm): edgecal's corners, complete board in "
+          f"{res['views_found']}/{res['views']} views; OpenCV calibrateCamera / fisheye.calibrate on the same corners")
+    for who in ("edgecal", "opencv"):
+        for label, r in res[who].items():
+            if "error" in r:
+                print(f"{who:<8} {label:<26} failed: {r['error']}")
+                continue
+            extra = (f", {r['views']} views used, {r['dropped']} corners dropped, fx {r['fx']:.2f} ± {r['fx_std']:.2f}"
+                     if who == "edgecal" else f", fx {r['fx']:.2f}")
+            print(f"{who:<8} {label:<26} RMS {r['rms_px']:.3f} px{extra}")
 
 
 if __name__ == "__main__":

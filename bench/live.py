@@ -81,6 +81,7 @@ def write_rig(rig: dict, path: Path) -> None:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     fs.write("image_size", np.array(rig["left"]["image_size"], dtype=np.int32).reshape(1, 2))
     for side in ("left", "right"):
+        fs.write(f"distortion_model_{side}", str(rig[side].get("lens", "radtan")))
         fs.write(f"camera_matrix_{side}", np.array(rig[side]["K"], dtype=np.float64))
         fs.write(f"dist_coeffs_{side}", np.array(rig[side]["dist"], dtype=np.float64).reshape(1, -1))
     fs.write("R", np.array(rig["R_right_left"], dtype=np.float64))

@@ -24,7 +24,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from edgecal.synth import scenes  # noqa: E402
-from edgecal.synth.camera import _RAY_CACHE  # noqa: E402
+from edgecal.synth.camera import _RAY_CACHE, corner_ray_grid  # noqa: E402
 from edgecal.synth.clutter import clutter_background  # noqa: E402
 from edgecal.synth.photometric import apply_photometric, random_photometric  # noqa: E402
 from edgecal.synth.render import panels_from_target, render_radiance  # noqa: E402
@@ -98,7 +98,7 @@ def main() -> int:
     rng = np.random.default_rng(1)
     cams = [scenes.random_camera(np.random.default_rng(k), size) for k in range(n + 1)]
     rows.append(("  part: ray grid of a new camera 1280x800",
-                 *timed(lambda k: (_RAY_CACHE.clear(), cams[k].corner_ray_grid()), n)))
+                 *timed(lambda k: (_RAY_CACHE.clear(), corner_ray_grid(cams[k])), n)))
     cam = cams[0]
     tgt = planar_target(9, 6, 25.0)
     R, t, _ = scenes.place_board(rng, cam, tgt.boards[0], 40.0)

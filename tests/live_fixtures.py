@@ -36,6 +36,7 @@ def write_rig_yaml(truth_rig: dict, path: Path) -> Path:
     fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
     fs.write("image_size", np.array(truth_rig["left"]["image_size"], dtype=np.int32).reshape(1, 2))
     for side in ("left", "right"):
+        fs.write(f"distortion_model_{side}", str(truth_rig[side].get("lens", "radtan")))
         fs.write(f"camera_matrix_{side}", np.array(truth_rig[side]["K"], dtype=np.float64))
         fs.write(f"dist_coeffs_{side}", np.array(truth_rig[side]["dist"], dtype=np.float64).reshape(1, -1))
     fs.write("R", np.array(truth_rig["R_right_left"], dtype=np.float64))

@@ -64,7 +64,8 @@ def render_box_pair(seed: int, out: Path) -> dict:
     t_left = -R_left @ (eye - R_left[0] * np.linalg.norm(rig.T_right_left_mm) / 2.0)
     R_right, t_right = stereo_right_pose(R_left, t_left, rig.R_right_left, rig.T_right_left_mm)
     for side, cam, R, t in (("left", rig.left, R_left, t_left), ("right", rig.right, R_right, t_right)):
-        view = render_view(cam, panels, R, t, background=0.45, rng=seed, target_frame="box", target_name=box.name)
+        view = render_view(cam, panels, R, t, background=0.45, rng=seed, target_frame="box", target_name=box.name,
+                           camera_name=side)
         write_atomic(out / "box" / f"{side}.png", png_bytes(view.image))
     return rig.as_json()
 

@@ -18,7 +18,7 @@ from edgecal.commands.argtypes import positive_int
 from edgecal.errors import InputError
 from edgecal.fileio import check_outputs
 
-SCENES = ("planar", "hard", "partial", "occluded", "multi", "negative", "box", "robot")
+SCENES = ("planar", "fisheye", "rational", "hard", "partial", "occluded", "multi", "negative", "box", "robot")
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -91,8 +91,11 @@ def run(args: argparse.Namespace) -> int:
         seed = (args.seed, i)
         stem = f"{args.scene}_{i:03d}"
         try:
-            if args.scene == "planar":
+            if args.scene in ("planar", "fisheye", "rational"):
+                # fisheye / rational: the planar scene through a 150-200 deg Kannala-Brandt or a wide rational lens
                 kw = {"square_px": args.square_px} if args.square_px else {}
+                if args.scene != "planar":
+                    kw["distortion"] = args.scene
                 view = scenes.planar_view(seed, size=size, cols=cols, rows=rows, photometric=phot, **kw)
             elif args.scene == "hard":
                 kw = {"square_px": args.square_px} if args.square_px else {}

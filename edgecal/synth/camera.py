@@ -1,135 +1,118 @@
-"""The renderer's camera: OpenCV's pinhole model with (k1, k2, p1, p2, k3) distortion.
+"""The renderer's view of edgecal.camera.CameraModel: cameras by field of view, per-pixel ray grids, truth JSON.
 
-Projection follows OpenCV exactly (the tests compare against cv2.projectPoints). The inverse, pixel ->
-ray, solves the distortion equations by Newton's method to ~1e-13 in normalised coordinates (far below
-0.001 px), because the renderer's ground truth is only as good as this inverse.
+Projection is edgecal.camera.project (tested against OpenCV for every lens model). The inverse, pixel ->
+ray, is edgecal.camera.unproject, except for the radtan lens, whose pixel-corner grid keeps its numba
+Newton kernel below (same answer to ~1e-14, and renders bit-identical to the published sets). The
+renderer's ground truth is only as good as this inverse.
 
 Poses follow docs/conventions.md: ``X_cam = R_cam_world @ X_world + t_cam_world_mm`` (mm).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 from numba import njit
 
+from edgecal.camera import LENS_PARAMS, CameraModel, project, unproject
 
-@dataclass(frozen=True)
-class CameraModel:
-    """Intrinsics of one camera: ``K`` (3x3), ``dist`` (k1, k2, p1, p2, k3), ``size`` = (width, height) px."""
+# The truth files' "model" name of each lens model.
+JSON_MODEL = {"radtan": "opencv-pinhole-k1k2p1p2k3", "rational": "opencv-rational-k1k2p1p2k3k4k5k6",
+              "fisheye": "kannala-brandt-k1k2k3k4"}
 
-    K: np.ndarray
-    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
-    size: tuple[int, int] = (640, 480)
-    name: str = "cam"
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "K", np.asarray(self.K, dtype=np.float64).reshape(3, 3))
-        d = np.zeros(5)
-        given = np.asarray(self.dist, dtype=np.float64).ravel()
-        d[:len(given)] = given[:5]
-        object.__setattr__(self, "dist", d)
-        object.__setattr__(self, "size", (int(self.size[0]), int(self.size[1])))
+def camera_from_fov(size: tuple[int, int], hfov_deg: float, dist: tuple[float, ...] = (0.0,) * 5,
+                    principal_offset_px: tuple[float, float] = (0.0, 0.0), aspect: float = 1.0,
+                    lens: str = "radtan") -> CameraModel:
+    """A camera of horizontal field of view ``hfov_deg`` with the principal point near the image centre.
 
-    @staticmethod
-    def from_fov(size: tuple[int, int], hfov_deg: float, dist: tuple[float, ...] = (0.0,) * 5,
-                 principal_offset_px: tuple[float, float] = (0.0, 0.0), aspect: float = 1.0,
-                 name: str = "cam") -> "CameraModel":
-        """A camera of horizontal field of view ``hfov_deg`` with the principal point near the image centre."""
-        w, h = size
-        fx = 0.5 * w / np.tan(0.5 * np.radians(hfov_deg))
-        K = np.array([[fx, 0.0, (w - 1) / 2.0 + principal_offset_px[0]],
-                      [0.0, fx * aspect, (h - 1) / 2.0 + principal_offset_px[1]],
-                      [0.0, 0.0, 1.0]])
-        return CameraModel(K, np.asarray(dist, dtype=np.float64), (w, h), name)
+    Pinhole lenses (radtan, rational): f = w / 2 / tan(hfov / 2); fisheye: the equidistant f = w / 2 / (hfov / 2),
+    so a fisheye may see 180 degrees and more.
+    """
+    w, h = size
+    half = 0.5 * np.radians(hfov_deg)
+    fx = 0.5 * w / (half if lens == "fisheye" else np.tan(half))
+    return CameraModel(fx, fx * aspect, (w - 1) / 2.0 + principal_offset_px[0], (h - 1) / 2.0 + principal_offset_px[1],
+                       lens, np.asarray(dist, dtype=np.float64)[:len(LENS_PARAMS[lens])], (w, h))
 
-    @property
-    def width(self) -> int:
-        """Image width in pixels."""
-        return self.size[0]
 
-    @property
-    def height(self) -> int:
-        """Image height in pixels."""
-        return self.size[1]
+def project_world(camera: CameraModel, points_world: np.ndarray, R_cam_world: np.ndarray,
+                  t_cam_world_mm: np.ndarray) -> np.ndarray:
+    """Pixels (N, 2) of world points (N, 3) seen by ``camera`` at pose (R_cam_world, t_cam_world_mm)."""
+    p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+    return project(p @ np.asarray(R_cam_world).T + np.asarray(t_cam_world_mm).reshape(1, 3), camera)
 
-    def key(self) -> tuple:
-        """A hashable identity of the intrinsics (for caching ray grids)."""
-        return (tuple(np.round(self.K.ravel(), 12)), tuple(np.round(self.dist, 15)), self.size)
 
-    def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """Pixels (N, 2) of camera-frame points (N, 3) in mm (points must have z > 0)."""
-        p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
-        xy = p[:, :2] / p[:, 2:3]
-        return self.normalized_to_pixels(distort_normalized(xy, self.dist))
-
-    def project_world(self, points_world: np.ndarray, R_cam_world: np.ndarray,
-                      t_cam_world_mm: np.ndarray) -> np.ndarray:
-        """Pixels (N, 2) of world points (N, 3) seen by this camera at pose (R_cam_world, t_cam_world_mm)."""
-        p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
-        return self.project(p @ np.asarray(R_cam_world).T + np.asarray(t_cam_world_mm).reshape(1, 3))
-
-    def normalized_to_pixels(self, xy_distorted: np.ndarray) -> np.ndarray:
-        """Apply K to distorted normalised coordinates (N, 2)."""
-        K = self.K
-        x, y = xy_distorted[:, 0], xy_distorted[:, 1]
-        return np.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], axis=1)
-
-    def pixels_to_distorted(self, pixels: np.ndarray) -> np.ndarray:
-        """Undo K: distorted normalised coordinates (N, 2) of pixels (N, 2)."""
-        K = self.K
-        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
-        yd = (px[:, 1] - K[1, 2]) / K[1, 1]
-        xd = (px[:, 0] - K[0, 2] - K[0, 1] * yd) / K[0, 0]
-        return np.stack([xd, yd], axis=1)
-
-    def pixel_to_ray(self, pixels: np.ndarray) -> np.ndarray:
-        """Unit-z rays (x, y, 1) (N, 3) through pixels (N, 2); NaN where the distortion cannot be inverted."""
-        xyd = self.pixels_to_distorted(pixels)
-        x, y = undistort_normalized(np.ascontiguousarray(xyd[:, 0]), np.ascontiguousarray(xyd[:, 1]), self.dist)
+def pixel_rays(camera: CameraModel, pixels: np.ndarray) -> np.ndarray:
+    """Rays (N, 3) through pixels (N, 2), scaled to z = 1; NaN where the lens has no inverse or the ray is
+    not in front of the camera (z <= 0, a fisheye beyond 90 degrees)."""
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    if camera.lens == "radtan":
+        xd = (px[:, 0] - camera.cx) / camera.fx
+        yd = (px[:, 1] - camera.cy) / camera.fy
+        x, y = undistort_normalized(xd, yd, camera.params)
         return np.stack([x, y, np.ones_like(x)], axis=1)
-
-    def corner_ray_grid(self) -> tuple[np.ndarray, np.ndarray]:
-        """Rays through every pixel *corner*: arrays (h+1, w+1) of x and y (z = 1).
-
-        Grid point (i, j) is the pixel-coordinate point (j - 0.5, i - 0.5): the corners shared by the
-        pixels around it (pixel centres are integers, see docs/conventions.md).
-        """
-        return _ray_grid_cached(self)
-
-    def as_json(self, R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray) -> dict:
-        """The ``camera`` section of an "edgecal-synth-gt/1" file."""
-        R = np.asarray(R_cam_world, dtype=np.float64)
-        t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
-        return {
-            "name": self.name,
-            "model": "opencv-pinhole-k1k2p1p2k3",
-            "K": self.K.tolist(),
-            "dist": self.dist.tolist(),
-            "image_size": list(self.size),
-            "R_cam_world": R.tolist(),
-            "t_cam_world_mm": t.tolist(),
-            "center_world_mm": (-R.T @ t).tolist(),
-        }
+    v = unproject(px, camera)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(v[:, 2] > 1e-12, v[:, 2], np.nan)
+    return v / z[:, None]
 
 
-_RAY_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+def corner_ray_grid(camera: CameraModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays through every pixel *corner*: arrays (h+1, w+1) of x, y and z (z = 1 for pinhole lenses,
+    unit rays for fisheye ones, which may point behind the camera plane).
+
+    Grid point (i, j) is the pixel-coordinate point (j - 0.5, i - 0.5): the corners shared by the
+    pixels around it (pixel centres are integers, see docs/conventions.md).
+    """
+    return _ray_grid_cached(camera)
 
 
-def _ray_grid_cached(cam: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+def camera_json(camera: CameraModel, name: str, R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray) -> dict:
+    """The ``camera`` section of an "edgecal-synth-gt/1" file (``dist``: the lens model's parameters)."""
+    R = np.asarray(R_cam_world, dtype=np.float64)
+    t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
+    return {
+        "name": name,
+        "model": JSON_MODEL[camera.lens],
+        "lens": camera.lens,
+        "K": camera.camera_matrix.tolist(),
+        "dist": camera.dist_coeffs.tolist(),
+        "image_size": list(camera.image_size),
+        "R_cam_world": R.tolist(),
+        "t_cam_world_mm": t.tolist(),
+        "center_world_mm": (-R.T @ t).tolist(),
+    }
+
+
+def camera_from_json(cam: dict) -> tuple[CameraModel, np.ndarray, np.ndarray]:
+    """(camera, R_cam_world, t_cam_world_mm) of a truth file's ``camera`` section (radtan when it names no lens)."""
+    model = CameraModel.from_opencv(np.array(cam["K"], dtype=np.float64), np.array(cam["dist"], dtype=np.float64),
+                                    tuple(cam["image_size"]), str(cam.get("lens", "radtan")))
+    return model, np.array(cam["R_cam_world"], dtype=np.float64), np.array(cam["t_cam_world_mm"], dtype=np.float64)
+
+
+_RAY_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _ray_grid_cached(cam: CameraModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # A camera's ray grid never changes, and sequences render thousands of frames with one camera.
     key = cam.key()
     hit = _RAY_CACHE.get(key)
     if hit is None:
-        w, h = cam.size
-        K, d = cam.K, cam.dist
-        out_x = np.empty((h + 1, w + 1))
-        out_y = np.empty((h + 1, w + 1))
-        _undistort_grid(float(K[0, 0]), float(K[0, 1]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]),
-                        float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]), monotonic_radius2(d),
-                        out_x, out_y)
-        hit = (out_x, out_y)
+        w, h = cam.image_size
+        if cam.lens == "radtan":
+            d = cam.params
+            out_x = np.empty((h + 1, w + 1))
+            out_y = np.empty((h + 1, w + 1))
+            _undistort_grid(cam.fx, 0.0, cam.cx, cam.fy, cam.cy, float(d[0]), float(d[1]), float(d[2]), float(d[3]),
+                            float(d[4]), monotonic_radius2(d), out_x, out_y)
+            hit = (out_x, out_y, np.ones_like(out_x))
+        else:
+            jj, ii = np.meshgrid(np.arange(w + 1) - 0.5, np.arange(h + 1) - 0.5)
+            v = unproject(np.stack([jj, ii], axis=-1), cam)
+            if cam.lens != "fisheye":
+                v = v / v[..., 2:3]   # pinhole rays at z = 1, as the radtan grid
+            hit = (np.ascontiguousarray(v[..., 0]), np.ascontiguousarray(v[..., 1]), np.ascontiguousarray(v[..., 2]))
         if len(_RAY_CACHE) > 8:
             _RAY_CACHE.clear()
         _RAY_CACHE[key] = hit

@@ -15,8 +15,9 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from edgecal.camera import CameraModel
 from edgecal.geometry import rotation_about
-from edgecal.synth.camera import CameraModel, stereo_right_pose
+from edgecal.synth.camera import camera_from_fov, pixel_rays, stereo_right_pose
 from edgecal.synth.photometric import Photometric
 from edgecal.synth.render import Panel, board_panel_extent
 from edgecal.synth.scenes import SeedLike, _fits, _photometric, _rng, _squares_outline
@@ -56,7 +57,7 @@ def handheld_rig(seed: SeedLike, size: tuple[int, int] = (640, 480), stereo: boo
     def camera(name: str) -> CameraModel:
         dist = (rng.uniform(-0.15, -0.05), rng.uniform(0.0, 0.05), rng.normal(0, 3e-4), rng.normal(0, 3e-4), 0.0)
         off = (float(rng.normal(0, 0.01 * size[0])), float(rng.normal(0, 0.01 * size[1])))
-        return CameraModel.from_fov(size, float(rng.uniform(58.0, 66.0)), dist, off, 1.0, name)
+        return camera_from_fov(size, float(rng.uniform(58.0, 66.0)), dist, off, 1.0)
     left = camera("left")
     right = camera("right") if stereo else None
     R = rotation_about(np.array([0.0, 1.0, 0.0]), np.radians(float(rng.uniform(-1.5, 1.5))))
@@ -80,8 +81,8 @@ def _key_poses(rng: np.random.Generator, rig: HandheldRig, n: int) -> list[tuple
     """
     outline = _squares_outline(rig.board)
     b = rig.board
-    w, h = rig.left.size
-    f = float(np.sqrt(rig.left.K[0, 0] * rig.left.K[1, 1]))
+    w, h = rig.left.image_size
+    f = float(np.sqrt(rig.left.fx * rig.left.fy))
     centre = np.array([(b.cols - 1) * b.square_mm / 2.0, (b.rows - 1) * b.square_mm / 2.0, 0.0])
     poses: list[tuple[np.ndarray, np.ndarray]] = []
     for k in range(n):
@@ -97,7 +98,7 @@ def _key_poses(rng: np.random.Generator, rig: HandheldRig, n: int) -> list[tuple
             z = f * b.square_mm / sq
             # a stereo pair: aim so that the place is midway between the board's positions in the two images
             shift = 0.0 if rig.right is None else 0.5 * f * float(np.linalg.norm(rig.T_right_left_mm)) / z
-            ray = rig.left.pixel_to_ray(np.array([[place[0] * (w - 1) + shift, place[1] * (h - 1)]]))[0]
+            ray = pixel_rays(rig.left, np.array([[place[0] * (w - 1) + shift, place[1] * (h - 1)]]))[0]
             t = ray * z - R @ centre
             ok = np.all(np.isfinite(t)) and _fits(rig.left, outline @ R.T + t, 6.0)[0]
             if ok and rig.right is not None:
@@ -144,12 +145,13 @@ def handheld_sequence(seed: SeedLike, rig: HandheldRig, n_poses: int = 12, hold_
                 steps.append((_interpolate(pose, poses[k + 1], s * s * (3 - 2 * s)), True))
         for (R, t), moving in steps:
             left = render_view(rig.left, [panel], R, t, background=background, photometric=phot, rng=rng,
-                               supersampling=supersampling, extra={"category": "handheld", "moving": moving})
+                               supersampling=supersampling, extra={"category": "handheld", "moving": moving},
+                               camera_name="left")
             right = None
             if rig.right is not None:
                 Rr, tr = stereo_right_pose(R, t, rig.R_right_left, rig.T_right_left_mm)
                 right = render_view(rig.right, [panel], Rr, tr, background=background, photometric=phot,
                                     rng=rng, supersampling=supersampling,
-                                    extra={"category": "handheld", "moving": moving})
+                                    extra={"category": "handheld", "moving": moving}, camera_name="right")
             yield HandheldFrame(index, int(round(index * 1e9 / fps)), left, right, moving)
             index += 1

@@ -1,7 +1,8 @@
-"""Ray-casting planar panels (chessboards and plain plates) through a distorted pinhole camera.
+"""Ray-casting planar panels (chessboards and plain plates) through a camera of any lens model.
 
 The scene is a list of :class:`Panel` in the world frame. Rays are cast through every pixel *corner*
-(exact inverse distortion, see camera.py) and each corner gets a label: which panel is in front and
+(the lens model's exact inverse, edgecal.camera.unproject; fisheye rays may point behind the camera
+plane, so a 190 degree lens renders too; see camera.py) and each corner gets a label: which panel is in front and
 which cell of its pattern it falls in (a square, or a margin strip). A pixel whose four corners share
 one label lies entirely inside one convex cell, so it is uniform and costs nothing more. Every other
 pixel (an edge, an X-junction, a panel outline, an occlusion boundary) is supersampled with n x n
@@ -20,7 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from edgecal.synth.camera import CameraModel
+from edgecal.camera import CameraModel
+from edgecal.synth.camera import corner_ray_grid
 from edgecal.targets import Board, Target
 
 # Columns of the packed per-panel array handed to the kernels (camera frame, mm).
@@ -121,19 +123,28 @@ def pack_panels(panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np
 
 
 @njit(cache=True, nogil=True)
-def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float, float, float]:
-    """Front-most panel hit by the ray (x, y, 1): (panel, cell i, cell j, albedo, u, v); panel -1 = background."""
+def _hit(x: float, y: float, z: float, panels: np.ndarray) -> tuple[int, int, int, float, float, float]:
+    """Front-most panel hit by the ray (x, y, z): (panel, cell i, cell j, albedo, u, v); panel -1 = background.
+
+    Pinhole grids have z = 1 (the arithmetic is then that of the ray (x, y, 1)); fisheye rays are unit
+    vectors, possibly with z <= 0.
+    """
     best_t = np.inf
     best = -1
     bu = 0.0
     bv = 0.0
     for p in range(panels.shape[0]):
-        if x < panels[p, 23] or x > panels[p, 25] or y < panels[p, 24] or y > panels[p, 26]:
-            continue
+        if z > 0.0:
+            xz = x / z
+            yz = y / z
+            if xz < panels[p, 23] or xz > panels[p, 25] or yz < panels[p, 24] or yz > panels[p, 26]:
+                continue
+        elif panels[p, 23] > -np.inf:
+            continue  # the panel lies entirely in front of the camera plane; this ray does not
         nx = panels[p, 9]
         ny = panels[p, 10]
         nz = panels[p, 11]
-        den = nx * x + ny * y + nz
+        den = nx * x + ny * y + nz * z
         if abs(den) < 1e-15:
             continue
         t = (nx * panels[p, 0] + ny * panels[p, 1] + nz * panels[p, 2]) / den
@@ -141,7 +152,7 @@ def _hit(x: float, y: float, panels: np.ndarray) -> tuple[int, int, int, float, 
             continue
         dx = t * x - panels[p, 0]
         dy = t * y - panels[p, 1]
-        dz = t - panels[p, 2]
+        dz = t * z - panels[p, 2]
         u = dx * panels[p, 3] + dy * panels[p, 4] + dz * panels[p, 5]
         v = dx * panels[p, 6] + dy * panels[p, 7] + dz * panels[p, 8]
         if u < panels[p, 12] or u > panels[p, 14] or v < panels[p, 13] or v > panels[p, 15]:
@@ -215,7 +226,7 @@ def _negative_area(c: float, ga: float, gb: float) -> float:
 
 
 @njit(cache=True, nogil=True)
-def _supersample(i: int, j: int, rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, bg: float,
+def _supersample(i: int, j: int, rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, panels: np.ndarray, bg: float,
                  n: int) -> tuple[float, float]:
     """Box-filtered albedo and panel coverage of pixel (i, j) from n x n stratified, jittered rays."""
     x00 = rx[i, j]
@@ -226,6 +237,10 @@ def _supersample(i: int, j: int, rx: np.ndarray, ry: np.ndarray, panels: np.ndar
     y10 = ry[i, j + 1]
     y01 = ry[i + 1, j]
     y11 = ry[i + 1, j + 1]
+    z00 = rz[i, j]
+    z10 = rz[i, j + 1]
+    z01 = rz[i + 1, j]
+    z11 = rz[i + 1, j + 1]
     acc = 0.0
     cov = 0.0
     for si in range(n):
@@ -238,7 +253,8 @@ def _supersample(i: int, j: int, rx: np.ndarray, ry: np.ndarray, panels: np.ndar
             wb = 1.0 - b
             x = wb * (wa * x00 + a * x10) + b * (wa * x01 + a * x11)
             y = wb * (wa * y00 + a * y10) + b * (wa * y01 + a * y11)
-            p, _ci, _cj, alb, _u, _v = _hit(x, y, panels)
+            z = wb * (wa * z00 + a * z10) + b * (wa * z01 + a * z11)
+            p, _ci, _cj, alb, _u, _v = _hit(x, y, z, panels)
             if p >= 0:
                 acc += alb
                 cov += 1.0
@@ -249,7 +265,7 @@ def _supersample(i: int, j: int, rx: np.ndarray, ry: np.ndarray, panels: np.ndar
 
 
 @njit(cache=True, nogil=True)
-def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.ndarray, n_ss: int,
+def _raycast(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, panels: np.ndarray, background: np.ndarray, n_ss: int,
              n_junction: int, out: np.ndarray, coverage: np.ndarray) -> int:
     """Fill ``out`` (h, w) with the area-averaged albedo; returns the number of supersampled pixels.
 
@@ -270,7 +286,7 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.
             if x != x or y != y:
                 labels[i, j] = -2  # outside the camera model's valid range
                 continue
-            p, ci, cj, a, u, v = _hit(x, y, panels)
+            p, ci, cj, a, u, v = _hit(x, y, rz[i, j], panels)
             labels[i, j] = -1 if p < 0 else (p * 1000 + (ci + 100)) * 1000 + (cj + 100)
             albedo[i, j] = a
             gu[i, j] = u
@@ -347,14 +363,15 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.
             n_sampled += 1
             # Junctions of the squares (X inside, T on the border) decide corner positions: sample densely.
             dense = n_lab >= 3 and one_panel and n_square_cells >= 1
-            val, cov = _supersample(i, j, rx, ry, panels, bg, n_junction if dense else n_ss)
+            val, cov = _supersample(i, j, rx, ry, rz, panels, bg, n_junction if dense else n_ss)
             out[i, j] = val
             coverage[i, j] = cov
     return n_sampled
 
 
 @njit(cache=True, nogil=True)
-def _raycast_every_pixel(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, background: np.ndarray, n_ss: int,
+def _raycast_every_pixel(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, panels: np.ndarray, background: np.ndarray,
+                         n_ss: int,
                          out: np.ndarray) -> None:
     for i in range(out.shape[0]):
         for j in range(out.shape[1]):
@@ -362,17 +379,17 @@ def _raycast_every_pixel(rx: np.ndarray, ry: np.ndarray, panels: np.ndarray, bac
                     or rx[i + 1, j + 1] != rx[i + 1, j + 1]:
                 out[i, j] = background[i, j]
                 continue
-            out[i, j] = _supersample(i, j, rx, ry, panels, background[i, j], n_ss)[0]
+            out[i, j] = _supersample(i, j, rx, ry, rz, panels, background[i, j], n_ss)[0]
 
 
 def render_radiance_reference(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray,
                               t_cam_world_mm: np.ndarray, background: float = 0.5, n: int = 24) -> np.ndarray:
     """Brute-force reference for tests: every pixel averaged over n x n jittered rays, no shortcuts."""
-    w, h = camera.size
+    w, h = camera.image_size
     bg = np.full((h, w), float(background), dtype=np.float32)
-    rx, ry = camera.corner_ray_grid()
+    rx, ry, rz = corner_ray_grid(camera)
     out = np.empty((h, w), dtype=np.float32)
-    _raycast_every_pixel(rx, ry, pack_panels(panels, R_cam_world, t_cam_world_mm), bg, int(n), out)
+    _raycast_every_pixel(rx, ry, rz, pack_panels(panels, R_cam_world, t_cam_world_mm), bg, int(n), out)
     return out
 
 
@@ -385,20 +402,20 @@ def render_radiance(camera: CameraModel, panels: list[Panel], R_cam_world: np.nd
     ``supersampling`` is n: outline and occlusion pixels get n x n rays; X-junction pixels get
     ``junction_supersampling``^2; straight square edges are integrated exactly.
     """
-    w, h = camera.size
+    w, h = camera.image_size
     if np.isscalar(background):
         bg = np.full((h, w), float(background), dtype=np.float32)
     else:
         bg = np.ascontiguousarray(background, dtype=np.float32)
         if bg.shape != (h, w):
             raise ValueError(f"background has shape {bg.shape}, the camera image is {(h, w)}")
-    rx, ry = camera.corner_ray_grid()
+    rx, ry, rz = corner_ray_grid(camera)
     packed = pack_panels(panels, R_cam_world, t_cam_world_mm)
     out = np.empty((h, w), dtype=np.float32)
     coverage = np.empty((h, w), dtype=np.float32)
     if len(panels) == 0:
         return bg.copy(), np.zeros((h, w), dtype=np.float32)
-    _raycast(rx, ry, packed, bg, int(supersampling), int(max(supersampling, junction_supersampling)), out, coverage)
+    _raycast(rx, ry, rz, packed, bg, int(supersampling), int(max(supersampling, junction_supersampling)), out, coverage)
     return out, coverage
 
 
@@ -414,6 +431,30 @@ def visible_mask(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarr
 
 
 @njit(cache=True, nogil=True)
+def _unoccluded(x: float, y: float, z: float, panels: np.ndarray, own: int) -> bool:
+    """No panel but ``own`` crosses the segment from the camera to the point (x, y, z) (any direction)."""
+    dist = np.sqrt(x * x + y * y + z * z)
+    for p in range(panels.shape[0]):
+        if p == own:
+            continue
+        den = panels[p, 9] * x + panels[p, 10] * y + panels[p, 11] * z
+        if abs(den) < 1e-15:
+            continue
+        t = (panels[p, 9] * panels[p, 0] + panels[p, 10] * panels[p, 1] + panels[p, 11] * panels[p, 2]) / den
+        # as for points in front: a panel flush with this one (within 1e-3 mm) does not occlude it
+        if t <= 0.0 or t >= 1.0 - 1e-6 - 1e-3 / dist:
+            continue
+        dx = t * x - panels[p, 0]
+        dy = t * y - panels[p, 1]
+        dz = t * z - panels[p, 2]
+        u = dx * panels[p, 3] + dy * panels[p, 4] + dz * panels[p, 5]
+        v = dx * panels[p, 6] + dy * panels[p, 7] + dz * panels[p, 8]
+        if panels[p, 12] <= u <= panels[p, 14] and panels[p, 13] <= v <= panels[p, 15]:
+            return False
+    return True
+
+
+@njit(cache=True, nogil=True)
 def _visible_kernel(pts: np.ndarray, panels: np.ndarray, own: int) -> np.ndarray:
     out = np.zeros(pts.shape[0], dtype=np.bool_)
     if panels[own, 22] == 0.0:
@@ -421,6 +462,8 @@ def _visible_kernel(pts: np.ndarray, panels: np.ndarray, own: int) -> np.ndarray
     for k in range(pts.shape[0]):
         z = pts[k, 2]
         if z <= 0.0:
+            # beside or behind the camera plane (a fisheye sees it): the ray is the point itself, t in (0, 1)
+            out[k] = _unoccluded(pts[k, 0], pts[k, 1], z, panels, own)
             continue
         x = pts[k, 0] / z
         y = pts[k, 1] / z

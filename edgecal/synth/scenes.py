@@ -20,9 +20,15 @@ from typing import Iterator
 
 import numpy as np
 
+from edgecal.camera import CameraModel
 from edgecal.config import packaged_config_path
 from edgecal.geometry import look_at, rotation_about
-from edgecal.synth.camera import CameraModel, stereo_right_pose
+from edgecal.synth.camera import (
+    camera_from_fov,
+    camera_json,
+    pixel_rays,
+    stereo_right_pose,
+)
 from edgecal.synth.clutter import clutter_background, uniform_background
 from edgecal.synth.photometric import Photometric, random_photometric
 from edgecal.synth.render import Panel, board_panel_extent, panels_from_target
@@ -55,7 +61,23 @@ def random_camera(rng: np.random.Generator, size: tuple[int, int] = (640, 480),
                   hfov_deg: FloatOrRange = (55.0, 72.0), distortion: str = "mild",
                   name: str = "cam") -> CameraModel:
     """A plausible camera: random field of view, principal point near the centre, distortion level
-    "none", "mild" (|k1| <= 0.15) or "strong" (barrel up to k1 = -0.3)."""
+    "none", "mild" (|k1| <= 0.15) or "strong" (barrel up to k1 = -0.3) of the radtan lens, or the lens models
+    "rational" (a wide lens, 90-110 deg unless ``hfov_deg`` says otherwise) and "fisheye" (Kannala-Brandt,
+    150-200 deg unless ``hfov_deg`` says otherwise)."""
+    w, h = size
+    if distortion in ("rational", "fisheye"):
+        wide = distortion == "fisheye"
+        hfov = (150.0, 200.0) if hfov_deg == (55.0, 72.0) and wide else (90.0, 110.0) if hfov_deg == (55.0, 72.0) \
+            else hfov_deg
+        if wide:
+            params = [rng.uniform(-0.02, 0.04), rng.uniform(-0.01, 0.01), rng.uniform(-0.002, 0.002),
+                      rng.uniform(-0.0005, 0.0005)]
+        else:
+            params = [rng.uniform(0.3, 0.5), rng.uniform(-0.08, 0.0), rng.normal(0, 5e-4), rng.normal(0, 5e-4),
+                      rng.uniform(0.0, 0.02), rng.uniform(0.65, 0.85), rng.uniform(0.0, 0.04), rng.uniform(0.0, 0.008)]
+        off = (float(rng.normal(0, 0.01 * w)), float(rng.normal(0, 0.01 * h)))
+        return camera_from_fov(size, _pick(rng, hfov), tuple(params), off, float(rng.uniform(0.997, 1.003)),
+                               distortion)
     dist = np.zeros(5)
     if distortion == "mild":
         dist[:4] = [rng.uniform(-0.15, 0.05), rng.uniform(-0.02, 0.05), rng.normal(0, 5e-4), rng.normal(0, 5e-4)]
@@ -63,11 +85,9 @@ def random_camera(rng: np.random.Generator, size: tuple[int, int] = (640, 480),
         dist[:5] = [rng.uniform(-0.3, -0.15), rng.uniform(0.02, 0.1), rng.normal(0, 1e-3), rng.normal(0, 1e-3),
                     rng.uniform(-0.02, 0.0)]
     elif distortion != "none":
-        raise ValueError(f"unknown distortion level {distortion!r} (none, mild, strong)")
-    w, h = size
+        raise ValueError(f"unknown distortion level {distortion!r} (none, mild, strong, rational, fisheye)")
     off = (float(rng.normal(0, 0.01 * w)), float(rng.normal(0, 0.01 * h)))
-    return CameraModel.from_fov(size, _pick(rng, hfov_deg), tuple(dist), off, float(rng.uniform(0.997, 1.003)),
-                                name)
+    return camera_from_fov(size, _pick(rng, hfov_deg), tuple(dist), off, float(rng.uniform(0.997, 1.003)))
 
 
 def _photometric(rng: np.random.Generator, photometric: Photometric | str) -> Photometric:
@@ -100,7 +120,7 @@ def _fits(camera: CameraModel, pts_cam: np.ndarray, margin_px: float,
     if np.any(pts_cam[:, 2] <= 1.0):
         return False, (0, 0, 0, 0)
     px = camera.project(pts_cam)
-    w, h = camera.size
+    w, h = camera.image_size
     box = (float(px[:, 0].min()), float(px[:, 1].min()), float(px[:, 0].max()), float(px[:, 1].max()))
     if box[0] < margin_px or box[1] < margin_px or box[2] > w - 1 - margin_px or box[3] > h - 1 - margin_px:
         return False, box
@@ -120,11 +140,11 @@ def place_board(rng: np.random.Generator, camera: CameraModel, board: Board, squ
     rolled in-plane, tilted by up to ``tilt_max_deg`` about a random in-plane axis, and shifted to a random
     place where its squares (plus ``margin_px``) fit and miss the boxes in ``taken``. None if nothing fits.
     """
-    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    f = float(np.sqrt(camera.fx * camera.fy))
     z = f * board.square_mm / square_px
     centre = np.array([(board.cols - 1) * board.square_mm / 2.0, (board.rows - 1) * board.square_mm / 2.0, 0.0])
     outline = _squares_outline(board)
-    w, h = camera.size
+    w, h = camera.image_size
     for _ in range(tries):
         roll = np.radians(_pick(rng, roll_deg))
         tilt = np.radians(rng.uniform(0.0, tilt_max_deg)) if tilt_max_deg > 0 else 0.0
@@ -132,7 +152,7 @@ def place_board(rng: np.random.Generator, camera: CameraModel, board: Board, squ
         R = rotation_about(np.array([np.cos(phi), np.sin(phi), 0.0]), tilt) @ rotation_about(np.array([0, 0, 1.0]), roll)
         # Where the centre goes: a random pixel, undistorted to a ray at depth z.
         px = np.array([[rng.uniform(0.1, 0.9) * (w - 1), rng.uniform(0.1, 0.9) * (h - 1)]])
-        ray = camera.pixel_to_ray(px)[0]
+        ray = pixel_rays(camera, px)[0]
         if not np.all(np.isfinite(ray)):
             continue
         t = ray * z - R @ centre
@@ -310,16 +330,17 @@ def box_stereo(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), distance_
     common = {"category": "box_stereo", "seed": _seed_list(seed) + ["box"]}
     left = render_view(left_cam, panels, R_left, t_left, background=bg_l, photometric=phot, rng=rng,
                        supersampling=supersampling, border_px=border_px, target_frame="box", target_name=tgt.name,
-                       extra={**common, "stereo_side": "left", "distractors": distractors_l})
+                       extra={**common, "stereo_side": "left", "distractors": distractors_l}, camera_name="left")
     right = render_view(right_cam, panels, R_right, t_right, background=bg_r, photometric=phot, rng=rng,
                         supersampling=supersampling, border_px=border_px, target_frame="box",
-                        target_name=tgt.name, extra={**common, "stereo_side": "right", "distractors": distractors_r})
+                        target_name=tgt.name, extra={**common, "stereo_side": "right", "distractors": distractors_r},
+                        camera_name="right")
     pair = {
         "format": PAIR_FORMAT,
         "units": {"length": "mm"},
         "convention": "X_right = R_right_left @ X_left + T_right_left_mm (camera frames, mm)",
-        "left": left_cam.as_json(R_left, t_left),
-        "right": right_cam.as_json(R_right, t_right),
+        "left": camera_json(left_cam, "left", R_left, t_left),
+        "right": camera_json(right_cam, "right", R_right, t_right),
         "R_right_left": R_rl.tolist(),
         "T_right_left_mm": T_rl.tolist(),
         "baseline_mm": float(np.linalg.norm(T_rl)),
@@ -385,8 +406,8 @@ class RobotRig:
     def as_json(self) -> dict:
         """Rig truth: both cameras (poses in the world/floor frame) and the stereo extrinsics."""
         R_r, t_r = stereo_right_pose(self.R_left_world, self.t_left_world_mm, self.R_right_left, self.T_right_left_mm)
-        return {"left": self.left.as_json(self.R_left_world, self.t_left_world_mm),
-                "right": self.right.as_json(R_r, t_r),
+        return {"left": camera_json(self.left, "left", self.R_left_world, self.t_left_world_mm),
+                "right": camera_json(self.right, "right", R_r, t_r),
                 "R_right_left": self.R_right_left.tolist(), "T_right_left_mm": self.T_right_left_mm.tolist(),
                 "baseline_mm": float(np.linalg.norm(self.T_right_left_mm)),
                 "convention": "X_right = R_right_left @ X_left + T_right_left_mm (camera frames, mm)"}
@@ -457,10 +478,12 @@ def robot_sequence(seed: SeedLike, n_frames: int | None = None, *, fps: float = 
         noise = np.random.default_rng(_seed_list(seed) + [k])
         left = render_view(rig.left, panels, rig.R_left_world, rig.t_left_world_mm, background=bg_l, photometric=phot,
                            rng=noise, supersampling=supersampling, border_px=border_px, target_frame="world",
-                           target_name=tgt.name, extra={**extra, "stereo_side": "left"}, exposure=exposure)
+                           target_name=tgt.name, extra={**extra, "stereo_side": "left"}, exposure=exposure,
+                           camera_name="left")
         right = render_view(rig.right, panels, R_r, t_r, background=bg_r, photometric=phot, rng=noise,
                             supersampling=supersampling, border_px=border_px, target_frame="world",
-                            target_name=tgt.name, extra={**extra, "stereo_side": "right"}, exposure=exposure)
+                            target_name=tgt.name, extra={**extra, "stereo_side": "right"}, exposure=exposure,
+                            camera_name="right")
         R_rig_robot = rig.R_left_world @ R_wr
         t_rig_robot = rig.R_left_world @ t_wr + rig.t_left_world_mm
         for view in (left, right):
@@ -490,7 +513,7 @@ def partial_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: in
     camera = random_camera(rng, size)
     board = planar_target(cols, rows, square_mm, name="board0").boards[0]
     sq = _pick(rng, square_px)
-    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    f = float(np.sqrt(camera.fx * camera.fy))
     z = f * square_mm / sq
     centre = np.array([(cols - 1) * square_mm / 2.0, (rows - 1) * square_mm / 2.0, 0.0])
     pts = board.board_points_mm()
@@ -499,7 +522,7 @@ def partial_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: in
     for _ in range(500):
         R = (rotation_about(np.array([*rng.normal(size=2), 0.0]), np.radians(rng.uniform(0, tilt_max_deg)))
              @ rotation_about(np.array([0, 0, 1.0]), rng.uniform(-np.pi, np.pi)))
-        ray = camera.pixel_to_ray(np.array([[rng.uniform(-0.2, 1.2) * w, rng.uniform(-0.2, 1.2) * h]]))[0]
+        ray = pixel_rays(camera, np.array([[rng.uniform(-0.2, 1.2) * w, rng.uniform(-0.2, 1.2) * h]]))[0]
         if not np.all(np.isfinite(ray)):
             continue
         t = ray * z - R @ centre
@@ -543,7 +566,7 @@ def occluded_view(seed: SeedLike, *, size: tuple[int, int] = (640, 480), cols: i
     bw, bh = x1 - x0, y1 - y0
     rect = [(x0 - 40, y0 - 40, x0 + frac * bw, y1 + 40), (x1 - frac * bw, y0 - 40, x1 + 40, y1 + 40),
             (x0 - 40, y0 - 40, x1 + 40, y0 + frac * bh), (x0 - 40, y1 - frac * bh, x1 + 40, y1 + 40)][side]
-    corners = camera.pixel_to_ray(np.array([[rect[0], rect[1]], [rect[2], rect[3]]])) * d
+    corners = pixel_rays(camera, np.array([[rect[0], rect[1]], [rect[2], rect[3]]])) * d
     Rt = R.T  # camera -> world (board) frame
     origin = Rt @ (corners[0] - t)
     extent = (0.0, 0.0, float(corners[1, 0] - corners[0, 0]), float(corners[1, 1] - corners[0, 1]))

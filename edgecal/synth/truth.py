@@ -1,35 +1,23 @@
 """Ground truth of a rendered view in the "edgecal-synth-gt/1" JSON format.
 
 The format is the one of ../shared/data/synthetic/README.md, so one scoring code reads the shared sets
-and edgecal's own renders. Corner pixels come from cv2.projectPoints (the reference definition of the
-camera model); a corner is listed only when its printed side faces the camera, no other panel is in
+and edgecal's own renders. Corner pixels come from edgecal.camera.project (equal to cv2.projectPoints and
+cv2.fisheye.projectPoints, the reference definitions, to 1e-6 px; tests/test_camera.py); a corner is listed only when its printed side faces the camera, no other panel is in
 front of it (nor of the board within 0.3 squares around it) and it lies at least ``border_px`` inside
 the image.
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from edgecal.synth.camera import CameraModel
+from edgecal.camera import CameraModel, unproject
+from edgecal.synth.camera import pixel_rays, project_world
 from edgecal.synth.render import Panel, visible_mask
 
 GT_FORMAT = "edgecal-synth-gt/1"
 PAIR_FORMAT = "edgecal-synth-gt/1+stereo"
 UNITS = {"length": "mm", "pixels": "OpenCV: integer coordinates are pixel centres, x right, y down"}
-
-
-def project_points_cv(camera: CameraModel, points_world: np.ndarray, R_cam_world: np.ndarray,
-                      t_cam_world_mm: np.ndarray) -> np.ndarray:
-    """cv2.projectPoints of world points (N, 3) -> pixels (N, 2)."""
-    pts = np.asarray(points_world, dtype=np.float64).reshape(-1, 1, 3)
-    if len(pts) == 0:
-        return np.zeros((0, 2))
-    rvec, _ = cv2.Rodrigues(np.asarray(R_cam_world, dtype=np.float64))
-    px, _ = cv2.projectPoints(pts, rvec, np.asarray(t_cam_world_mm, dtype=np.float64).reshape(3, 1),
-                              camera.K, camera.dist)
-    return px.reshape(-1, 2)
 
 
 def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray,
@@ -41,7 +29,7 @@ def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
     """
     R = np.asarray(R_cam_world, dtype=np.float64)
     t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
-    w, h = camera.size
+    w, h = camera.image_size
     out = []
     board_index = -1
     for k, p in enumerate(panels):
@@ -54,7 +42,8 @@ def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
         xyz = (np.asarray(p.origin_mm)[None, :] + (ids[:, :1] * s) * np.asarray(p.x_axis)[None, :]
                + (ids[:, 1:2] * s) * np.asarray(p.y_axis)[None, :])
         z = (xyz @ R.T + t)[:, 2]
-        ok = visible_mask(camera, panels, R, t, k, xyz) & (z > 0)
+        # a pinhole lens sees only what is in front of it; a fisheye lens also what is beside and behind
+        ok = visible_mask(camera, panels, R, t, k, xyz) & ((z > 0) | (camera.lens == "fisheye"))
         if occlusion_margin > 0 and ok.any():
             # A corner right at an occluding edge has half a saddle: list it only when the board around it
             # (occlusion_margin squares in 8 directions) is visible too.
@@ -65,12 +54,16 @@ def board_truth(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
             ok &= visible_mask(camera, panels, R, t, k, around).reshape(-1, 8).all(axis=1)
         px = np.full((len(ids), 2), np.nan)
         if ok.any():
-            px[ok] = project_points_cv(camera, xyz[ok], R, t)
+            px[ok] = project_world(camera, xyz[ok], R, t)
             # Beyond the radius where the distortion folds over, a point can project into the image
             # although the pixel's ray (the unique inverse the renderer uses) points elsewhere: not seen.
             cam_pts = xyz[ok] @ R.T + t
-            rays = camera.pixel_to_ray(px[ok])
-            same = np.all(np.abs(rays[:, :2] - cam_pts[:, :2] / cam_pts[:, 2:3]) < 1e-7, axis=1)
+            if camera.lens == "fisheye":
+                rays = unproject(px[ok], camera)
+                same = np.all(np.abs(rays - cam_pts / np.linalg.norm(cam_pts, axis=1, keepdims=True)) < 1e-7, axis=1)
+            else:
+                rays = pixel_rays(camera, px[ok])
+                same = np.all(np.abs(rays[:, :2] - cam_pts[:, :2] / cam_pts[:, 2:3]) < 1e-7, axis=1)
             ok[np.flatnonzero(ok)[~same]] = False
         inside = ((px[:, 0] >= border_px - 0.5) & (px[:, 0] <= w - 0.5 - border_px)
                   & (px[:, 1] >= border_px - 0.5) & (px[:, 1] <= h - 0.5 - border_px))
@@ -115,13 +108,6 @@ def target_json(panels: list[Panel], frame: str = "world", name: str | None = No
     if name:
         out["name"] = name
     return out
-
-
-def camera_from_json(cam: dict) -> tuple[CameraModel, np.ndarray, np.ndarray]:
-    """The camera and its pose (R_cam_world, t_cam_world_mm) from a truth file's ``camera`` section."""
-    model = CameraModel(np.array(cam["K"], dtype=np.float64), np.array(cam["dist"], dtype=np.float64),
-                        tuple(cam["image_size"]), str(cam.get("name", "cam")))
-    return model, np.array(cam["R_cam_world"], dtype=np.float64), np.array(cam["t_cam_world_mm"], dtype=np.float64)
 
 
 def panels_from_json(target: dict) -> list[Panel]:

@@ -6,7 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from edgecal.synth.camera import CameraModel
+from edgecal.camera import CameraModel
+from edgecal.synth.camera import camera_json
 from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
 from edgecal.synth.render import Panel, render_radiance
 from edgecal.synth.truth import GT_FORMAT, UNITS, board_truth, target_json
@@ -32,7 +33,8 @@ def render_view(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
                 *, background: np.ndarray | float = 0.5, photometric: Photometric = CLEAN,
                 rng: np.random.Generator | int | None = 0, supersampling: int = 12, border_px: float = 4.0,
                 target_frame: str = "world", target_name: str | None = None,
-                extra: dict | None = None, exposure: list[list[Panel]] | None = None) -> RenderedView:
+                extra: dict | None = None, exposure: list[list[Panel]] | None = None,
+                camera_name: str = "cam") -> RenderedView:
     """Render ``panels`` seen by ``camera`` at pose (R_cam_world, t_cam_world_mm) and describe the truth.
 
     ``rng`` (a Generator or a seed) drives the noise only; geometry is exact and deterministic.
@@ -51,8 +53,8 @@ def render_view(camera: CameraModel, panels: list[Panel], R_cam_world: np.ndarra
     truth = {
         "format": GT_FORMAT,
         "units": dict(UNITS),
-        "size": list(camera.size),
-        "camera": camera.as_json(R_cam_world, t_cam_world_mm),
+        "size": list(camera.image_size),
+        "camera": camera_json(camera, camera_name, R_cam_world, t_cam_world_mm),
         "target": target_json(panels, target_frame, target_name),
         "boards": board_truth(camera, panels, R_cam_world, t_cam_world_mm, border_px),
         "render": {"supersampling": int(supersampling), "border_px": float(border_px),
