@@ -77,8 +77,11 @@ def triangulate_rays(v_left: np.ndarray, v_right: np.ndarray, R_right_left: np.n
     # the unit of t makes the 4th column large or small: scale it to 1 for a well-conditioned SVD
     scale = max(float(np.linalg.norm(t)), 1e-12)
     A[:, :, 3] *= scale
-    _, _, vt = np.linalg.svd(A)
-    h = vt[:, -1, :]
+    # a ray that is not finite (a pixel the lens model cannot unproject) gives a NaN point, not a failed SVD
+    ok = np.all(np.isfinite(A), axis=(1, 2))
+    h = np.full((len(A), 4), np.nan)
+    if ok.any():
+        h[ok] = np.linalg.svd(A[ok])[2][:, -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         return h[:, :3] / (h[:, 3:] * scale)
 

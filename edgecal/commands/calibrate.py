@@ -26,6 +26,7 @@ from edgecal.calibration.acceptance import acceptance_problems
 from edgecal.calibration.assign import assign, assign_stereo, symmetry_warnings
 from edgecal.calibration.io import camera_info_paths, write_calibration
 from edgecal.calibration.lens_choice import choose_lens_model
+from edgecal.calibration.mirror import mirrored_face_hint
 from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.planar import calibrate_planar
 from edgecal.calibration.report import format_summary, write_report
@@ -277,6 +278,11 @@ def run(args: argparse.Namespace) -> int:
         corners, size = detect_views(views, target, args.max_pixels)
     cal = solve(target, views, corners, size, settings)
     problems = acceptance_problems(cal, settings.acceptance)
+    if problems and not target.is_planar and not args.corners:
+        # a box that fits badly: is one of its faces described mirrored? (detected again: one pair, cheap)
+        hint = mirrored_face_hint(target, [_detect(load_grey(f, args.max_pixels), target) for f in views[0].files])
+        if hint:
+            problems.append(hint)
     text = sys.stderr if args.json else sys.stdout
     print(format_summary(cal), file=text)
     prov = provenance(target, views, cal, settings, args.config,
