@@ -34,7 +34,6 @@ import fnmatch  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 import zlib  # noqa: E402
@@ -46,6 +45,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from edgecal.errors import EdgecalError  # noqa: E402
+from edgecal.fileio import write_atomic  # noqa: E402
 from edgecal.evaluate import (  # noqa: E402
     FoundGrid,
     GroundTruth,
@@ -662,18 +662,10 @@ def write_json_atomic(path: Path, data: dict, force: bool) -> None:
 
 
 def write_text_atomic(path: Path, text: str, force: bool) -> None:
-    """Write ``text`` to ``path`` via a temp file in the same folder; refuse to overwrite unless force."""
+    """Write ``text`` to ``path`` atomically with the umask's permissions; refuse to overwrite unless force."""
     if path.exists() and not force:
         raise EdgecalError(f"{path}: exists; pass --force to overwrite it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, text.encode("utf-8"))
 
 
 def _json_safe(v: object) -> object:
