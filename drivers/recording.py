@@ -23,9 +23,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from edgecal.drivers.base import Frame, Source, StereoFrame
 
-from edgecal.errors import InputError
+from edgecal.drivers.base import Frame, Source, StereoFrame
+from edgecal.errors import InputError, quote
 from edgecal.fileio import check_outputs, png_bytes, read_input, sync_paths, write_atomic
 
 MANIFEST = "manifest.json"
@@ -175,7 +175,7 @@ def load_manifest(folder: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise InputError(f"{path}: not an edgecal recording manifest (format must be {FORMAT!r})")
     if data.get("version") != VERSION:
-        raise InputError(f"{path}: recording version {str(data.get('version'))[:40]!r} is not supported "
+        raise InputError(f"{path}: recording version {quote(data.get('version'))} is not supported "
                          f"(this edgecal reads version {VERSION})")
     if data.get("layout") not in ("mono", "stereo") or not isinstance(data.get("frames"), list):
         raise InputError(f"{path}: manifest needs 'layout' (mono or stereo) and a 'frames' list")
@@ -207,10 +207,10 @@ def _check_frame_entry(path: Path, where: str, e: Any) -> None:
         raise InputError(f"{path}: {where}.file must be a file name relative to the recording")
     for key in ("stamp_ns", "seq", "recv_ns"):
         if key in e and not _is_int(e[key]):
-            raise InputError(f"{path}: {where}.{key} must be an integer, not {str(e[key])[:40]!r}")
+            raise InputError(f"{path}: {where}.{key} must be an integer, not {quote(e[key])}")
     if e.get("camera_id") is not None and not isinstance(e["camera_id"], str):
         raise InputError(f"{path}: {where}.camera_id must be a string")
     for key in ("exposure_us", "gain_db"):
         v = e.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)):
-            raise InputError(f"{path}: {where}.{key} must be a number or null, not {str(v)[:40]!r}")
+            raise InputError(f"{path}: {where}.{key} must be a number or null, not {quote(v)}")

@@ -362,6 +362,47 @@ def _synth_sequence(path: Path, spec: SourceSpec) -> list[tuple[ReplayItem, Repl
     return pairs or None
 
 
+@dataclass(frozen=True)
+class ReplayContents:
+    """What a replay holds, found without opening it (for checking a config before it runs)."""
+
+    frames: int                            # frames of one pass (a video: 1 when its first frame decodes)
+    stereo: bool
+    image_size: tuple[int, int] | None     # (width, height) of the first frame; None when it does not decode
+
+
+def replay_contents(spec: SourceSpec) -> ReplayContents:
+    """The number of frames, the layout and the first frame's size of the replay ``spec`` names.
+
+    Raises InputError as :func:`open_replay` does (no such path, no images); decodes one image (or a video's
+    first frame) and nothing else.
+    """
+    source = open_replay(spec)
+    first: Path | None = None
+    if isinstance(source, StereoReplaySource):
+        frames, stereo = len(source.pairs), True
+        first = source.pairs[0][0].file if source.pairs else None
+    elif source.video is not None:
+        cap = cv2.VideoCapture(str(source.video))
+        try:
+            ok, image = cap.read() if cap.isOpened() else (False, None)
+        finally:
+            cap.release()
+        size = (int(image.shape[1]), int(image.shape[0])) if ok and image is not None else None
+        return ReplayContents(int(ok), False, size)
+    else:
+        frames, stereo = len(source.items), False
+        first = source.items[0].file if source.items else None
+    size = None
+    if first is not None:
+        try:
+            image = read_image_file(first)
+            size = (int(image.shape[1]), int(image.shape[0]))
+        except InputError:
+            pass            # an unreadable frame is skipped at run time; the size stays unknown
+    return ReplayContents(frames, stereo, size)
+
+
 def open_replay(spec: SourceSpec) -> Source:
     """The replay Source for ``spec.target`` (see the module docstring for what PATH may be)."""
     path = Path(spec.target).expanduser()

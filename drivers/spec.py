@@ -43,7 +43,7 @@ from typing import Any, Mapping
 import yaml
 
 from edgecal.config import ConfigReader
-from edgecal.errors import ConfigError
+from edgecal.errors import ConfigError, quote
 from edgecal.images import DEFAULT_MAX_PIXELS
 
 DRIVERS = ("replay", "v4l2", "aravis", "dc1394", "depthai", "stereo", "mcap", "rosbag")
@@ -232,7 +232,7 @@ def _split_pair(body: str, uri: str) -> tuple[str, str]:
     for i, ch in enumerate(body):
         if ch == "," and any(body[i + 1:].startswith(d + ":") for d in DRIVERS):
             return body[:i], body[i + 1:]
-    raise ConfigError(f"source URI {uri!r}: stereo needs two sources, e.g. "
+    raise ConfigError(f"source URI {quote(uri)}: stereo needs two sources, e.g. "
                       "stereo:v4l2:/dev/video0,v4l2:/dev/video2")
 
 
@@ -240,20 +240,20 @@ def parse_uri(uri: str) -> SourceSpec:
     """Parse a source URI (see the module docstring) into a validated SourceSpec."""
     spec = _parse_uri(uri)
     if spec.driver in LOG_DRIVERS:
-        _check_log_topics(ConfigReader({}, f"source URI {uri!r}"), spec.driver, spec.settings)
+        _check_log_topics(ConfigReader({}, f"source URI {quote(uri)}"), spec.driver, spec.settings)
     return spec
 
 
 def _parse_uri(uri: str) -> SourceSpec:
     """parse_uri without the completeness check of a log source's topics (a config section may add them)."""
     if not isinstance(uri, str) or ":" not in uri:
-        raise ConfigError(f"source URI {uri!r}: expected DRIVER:TARGET with DRIVER one of {', '.join(DRIVERS)} "
+        raise ConfigError(f"source URI {quote(uri)}: expected DRIVER:TARGET with DRIVER one of {', '.join(DRIVERS)} "
                           "(e.g. replay:recordings/run1 or aravis:192.168.1.20)")
     driver, _, rest = uri.partition(":")
     driver = driver.strip().lower()
-    what = f"source URI {uri!r}"
+    what = f"source URI {quote(uri)}"
     if driver not in DRIVERS:
-        raise ConfigError(f"{what}: unknown driver {driver!r} (known: {', '.join(DRIVERS)})")
+        raise ConfigError(f"{what}: unknown driver {quote(driver)} (known: {', '.join(DRIVERS)})")
     if driver == "stereo":
         body, options = rest, {}
         if body.startswith("["):
@@ -262,7 +262,7 @@ def _parse_uri(uri: str) -> SourceSpec:
                 raise ConfigError(f"{what}: '[' without a closing ']'")
             tail = body[close + 1:]
             if tail and not tail.startswith("?"):
-                raise ConfigError(f"{what}: expected '?option=value' after ']' (got {tail!r})")
+                raise ConfigError(f"{what}: expected '?option=value' after ']' (got {quote(tail)})")
             options = _parse_options(tail[1:], what)
             body = body[1:close]
         left_uri, right_uri = _split_pair(body, uri)
@@ -290,7 +290,7 @@ def _check_guid(guid: str, what: str) -> None:
     try:
         int(guid, 16)
     except ValueError:
-        raise ConfigError(f"{what}: IEEE-1394 GUID {guid!r} must be hexadecimal, e.g. 00b09d0100a1b2c3") from None
+        raise ConfigError(f"{what}: IEEE-1394 GUID {quote(guid)} must be hexadecimal, e.g. 00b09d0100a1b2c3") from None
 
 
 def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "config") -> SourceSpec:

@@ -33,7 +33,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from edgecal.errors import InputError
+from edgecal.errors import InputError, quote
 
 GT_FORMAT = "edgecal-synth-gt/1"
 
@@ -362,7 +362,7 @@ def ground_truth_from_mapping(data: object, source: str) -> GroundTruth:
         raise InputError(f"{source}: the top level must be a JSON object")
     fmt = data.get("format")
     if fmt != GT_FORMAT:
-        raise InputError(f"{source}: field 'format' is {fmt!r}, expected {GT_FORMAT!r}")
+        raise InputError(f"{source}: field 'format' is {quote(fmt)}, expected {GT_FORMAT!r}")
     try:
         w, h = (int(v) for v in data["size"])
     except (KeyError, TypeError, ValueError):

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from edgecal.config import ConfigReader, load_yaml_mapping
-from edgecal.errors import ConfigError
+from edgecal.errors import ConfigError, quote
 
 
 @dataclass(frozen=True)
@@ -115,7 +115,7 @@ def _read_board(r: ConfigReader, index: int) -> Board:
     cr = r.raw("inner_corners")
     if (not isinstance(cr, (list, tuple)) or len(cr) != 2
             or any(isinstance(v, bool) or not isinstance(v, int) for v in cr)):
-        raise r.fail("inner_corners", f"must be [cols, rows], two whole numbers (got {cr!r})")
+        raise r.fail("inner_corners", f"must be [cols, rows], two whole numbers (got {quote(cr)})")
     cols, rows = int(cr[0]), int(cr[1])
     if cols < 2 or rows < 2:
         raise r.fail("inner_corners", f"needs at least 2 x 2 inner corners (got {cols} x {rows})")
@@ -137,7 +137,7 @@ def target_from_mapping(data: dict, source: str) -> Target:
     names = [b.name for b in boards]
     for i, n in enumerate(names):
         if names.index(n) != i:
-            raise ConfigError(f"{source}: field 'boards[{i}].name' repeats the board name {n!r}")
+            raise ConfigError(f"{source}: field 'boards[{i}].name' repeats the board name {quote(n)}")
     return Target(name, boards, source)
 
 
@@ -159,8 +159,8 @@ def parse_board_spec(spec: str, square_mm: float = 1.0) -> Target:
     """Parse the command-line shorthand ``CxR`` (inner corners) into a planar target."""
     m = _BOARD_SPEC.match(spec)
     if not m:
-        raise ConfigError(f"--board {spec!r}: expected COLSxROWS of inner corners, e.g. 9x6")
+        raise ConfigError(f"--board {quote(spec)}: expected COLSxROWS of inner corners, e.g. 9x6")
     cols, rows = int(m.group(1)), int(m.group(2))
     if cols < 2 or rows < 2:
-        raise ConfigError(f"--board {spec!r}: needs at least 2x2 inner corners")
+        raise ConfigError(f"--board {quote(spec)}: needs at least 2x2 inner corners")
     return planar_target(cols, rows, square_mm)

@@ -124,7 +124,8 @@ def test_bad_config_fails_before_opening_any_device(sequence: Path, tmp_path: Pa
     """A wrong field: one line naming it, exit 2; the absent camera is never touched (that would be exit 3)."""
     cfg = write_config(tmp_path / "live.yaml", sequence, free_endpoint())
     doc = yaml.safe_load(cfg.read_text())
-    doc["source"] = {"uri": "v4l2:/dev/video-edgecal-absent"}
+    doc["source"] = {"stereo": {"left": {"uri": "v4l2:/dev/video-edgecal-absent"},
+                                "right": {"uri": "v4l2:/dev/video-edgecal-absent2"}}}
     doc["pose"] = {"min_corners": 2}
     cfg.write_text(yaml.safe_dump(doc))
     res = subprocess.run([sys.executable, "-m", "edgecal", "run", "--config", str(cfg)], capture_output=True,

@@ -143,3 +143,41 @@ def test_listen_prints_the_stream(capsys: pytest.CaptureFixture) -> None:
 
 def test_listen_times_out_without_publisher(capsys: pytest.CaptureFixture) -> None:
     assert run_listen([free_endpoint(), "--timeout", "0.3"]) == 1
+
+
+def test_listen_survives_messages_it_does_not_expect(capsys: pytest.CaptureFixture) -> None:
+    """Another publisher on the port, another schema, damaged bytes: each is skipped with a short note."""
+    endpoint = free_endpoint()
+    good = encode(pose_message(a_pose(), 7, time.monotonic_ns() - 5_000_000, time.monotonic_ns()))
+    junk = [[b"pose"], [b"pose", b"\xff\xfe"], [b"pose", b"not json"], [b"pose", b"[1, 2]"],
+            [b"pose", b"{\"type\": \"pose\"}"], [b"pose", b"{\"type\": \"pose\", \"seq\": 1, \"latency_ns\": \"x\"}"],
+            [b"status", b"{\"type\": \"status\", \"latency_ms\": 5}"], [b"pose", b"x" * 100_000, b"extra"],
+            [b"pose", b"[" * 100_000]]
+    stop = threading.Event()
+
+    def publish() -> None:
+        ctx = zmq.Context()
+        sock = ctx.socket(zmq.PUB)
+        sock.bind(endpoint)
+        while not stop.is_set():
+            for frames in junk:
+                sock.send_multipart(frames)
+            sock.send_multipart([b"pose", good])
+            time.sleep(0.02)
+        sock.close(linger=0)
+        ctx.term()
+
+    th = threading.Thread(target=publish)
+    th.start()
+    try:
+        assert run_listen([endpoint, "--count", "6", "--timeout", "5"]) == 0
+    finally:
+        stop.set()
+        th.join()
+    out, err = capsys.readouterr()
+    lines = out.splitlines()
+    assert len(lines) == 6
+    assert any("stereo xyz_m [+0.1000 -0.2000 +1.0000]" in line for line in lines)
+    assert any(line.startswith("unrecognised 'pose' message") for line in lines)
+    assert "skipped a message that is not [topic, JSON object]" in err
+    assert max(len(line) for line in (out + err).splitlines()) < 300

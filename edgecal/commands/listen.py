@@ -13,7 +13,7 @@ import time
 
 import zmq
 
-from edgecal.errors import InputError
+from edgecal.errors import QUOTE_MAX_CHARS, InputError, quote
 
 TOPICS = ("pose", "status")
 
@@ -30,6 +30,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--timeout", type=float, default=0.0,
                    help="stop with exit code 1 after this many seconds without a message (0 = wait forever)")
     return p
+
+
+def parse_message(frames: list[bytes]) -> dict | None:
+    """The JSON object of one ``[topic, body]`` message; None for anything else (wrong frame count, not UTF-8,
+    not JSON, not an object)."""
+    if len(frames) != 2:
+        return None
+    try:
+        msg = json.loads(frames[1].decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    return msg if isinstance(msg, dict) else None
+
+
+def describe_message(msg: dict) -> str:
+    """format_message's line, or a short note naming the message when it lacks what that line needs."""
+    try:
+        return format_message(msg)
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError):
+        return f"unrecognised {quote(msg.get('type'))} message: {quote(msg)}"
 
 
 def format_message(msg: dict) -> str:
@@ -78,10 +98,15 @@ def run(args: argparse.Namespace) -> int:
                           file=sys.stderr)
                     return 1
                 continue
-            _topic, body = sock.recv_multipart()
+            frames = sock.recv_multipart()
             last = time.monotonic()
-            msg = json.loads(body)
-            print(json.dumps(msg) if args.json else format_message(msg), flush=True)
+            msg = parse_message(frames)
+            if msg is None:
+                # Someone else's publisher, another schema, a damaged message: say so briefly, keep listening.
+                print(f"edgecal listen: skipped a message that is not [topic, JSON object] "
+                      f"({len(frames)} frames: {quote(b' '.join(f[:QUOTE_MAX_CHARS] for f in frames[:3]))})", file=sys.stderr, flush=True)
+                continue
+            print(json.dumps(msg) if args.json else describe_message(msg), flush=True)
             received += 1
     finally:
         sock.close(linger=0)

@@ -11,11 +11,10 @@ from __future__ import annotations
 import ipaddress
 import logging
 from typing import Any
-from urllib.parse import urlsplit
 
 import zmq
 
-from edgecal.errors import ConfigError, DeviceError
+from edgecal.errors import ConfigError, DeviceError, quote
 from edgecal.publish.messages import POSE_TOPIC, STATUS_TOPIC, encode
 from edgecal.publish.sinks import FrameOutput, Sink
 
@@ -24,12 +23,19 @@ log = logging.getLogger(__name__)
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5560"
 
 
+def _tcp_host_port(endpoint: str) -> tuple[str, str]:
+    """HOST and PORT of ``tcp://HOST:PORT`` (brackets of an IPv6 HOST removed); either may be empty."""
+    rest = endpoint.partition("://")[2]
+    host, _, port = rest.rpartition(":")
+    return host.strip("[]") if host.startswith("[") else host, port
+
+
 def is_local_endpoint(endpoint: str) -> bool:
     """True for ipc:// and inproc:// endpoints and for tcp:// on a loopback address or 'localhost'."""
-    parts = urlsplit(endpoint)
-    if parts.scheme in ("ipc", "inproc"):
+    scheme = endpoint.partition("://")[0]
+    if scheme in ("ipc", "inproc"):
         return True
-    host = (parts.hostname or "").strip("[]")
+    host, _ = _tcp_host_port(endpoint)
     if host == "localhost":
         return True
     try:
@@ -38,16 +44,36 @@ def is_local_endpoint(endpoint: str) -> bool:
         return False        # '*', an interface name or a host name: not local
 
 
-def check_endpoint(endpoint: str, allow_remote: bool) -> str:
-    """Validate ``endpoint``; binding beyond the loopback interface needs ``allow_remote``."""
-    parts = urlsplit(endpoint)
-    if parts.scheme not in ("tcp", "ipc", "inproc"):
-        raise ConfigError(f"endpoint {endpoint!r}: must start with tcp://, ipc:// or inproc://")
-    if parts.scheme == "tcp" and parts.port is None:
-        raise ConfigError(f"endpoint {endpoint!r}: a tcp endpoint needs a port, e.g. tcp://127.0.0.1:5560")
+def endpoint_problem(endpoint: str, allow_remote: bool) -> str | None:
+    """What is wrong with ``endpoint`` as the place to bind the pose stream (None: nothing).
+
+    Checked here rather than left to ZeroMQ, whose bind() error does not say which part is wrong: a tcp
+    endpoint is ``tcp://HOST:PORT`` with PORT 1-65535 (not ``*``: subscribers could not know the port ZeroMQ
+    picks); binding beyond the loopback interface needs ``allow_remote``.
+    """
+    scheme, sep, rest = endpoint.partition("://")
+    if not sep or scheme not in ("tcp", "ipc", "inproc"):
+        return "must start with tcp://, ipc:// or inproc://, e.g. tcp://127.0.0.1:5560"
+    if not rest:
+        return f"needs an address after {scheme}://"
+    if scheme == "tcp":
+        host, port = _tcp_host_port(endpoint)
+        if ":" not in rest or not host:
+            return "must be tcp://HOST:PORT (with a port), e.g. tcp://127.0.0.1:5560"
+        if not (port.isascii() and port.isdigit()) or not 1 <= int(port) <= 65535:
+            return f"needs a port from 1 to 65535, not {quote(port)}"
+        if ":" in host and not rest.startswith("["):
+            return "must put an IPv6 address in brackets, e.g. tcp://[::1]:5560"
     if not allow_remote and not is_local_endpoint(endpoint):
-        raise ConfigError(f"endpoint {endpoint!r} is reachable from other machines: set "
-                          f"publish.allow_remote: true to bind there on purpose")
+        return "is reachable from other machines: set publish.allow_remote: true to bind there on purpose"
+    return None
+
+
+def check_endpoint(endpoint: str, allow_remote: bool) -> str:
+    """``endpoint`` if it can be bound (see endpoint_problem); ConfigError quoting it otherwise."""
+    problem = endpoint_problem(endpoint, allow_remote)
+    if problem is not None:
+        raise ConfigError(f"endpoint {quote(endpoint)} {problem}")
     return endpoint
 
 
@@ -100,10 +126,13 @@ class PosePublisher(Sink):
         """Sink interface: publish a status message."""
         self.send_status(message)
 
-    def close(self) -> None:
-        """Close the socket (and the context if this publisher created it); safe to call twice."""
+    def close(self, linger_s: float = 0.0) -> None:
+        """Close the socket (and the context if this publisher created it); safe to call twice.
+
+        ``linger_s``: how long messages still queued may take to leave (0: dropped at once).
+        """
         if not self._sock.closed:
-            self._sock.close(linger=0)
+            self._sock.close(linger=int(linger_s * 1000))
         if self._own_context and not self._ctx.closed:
             self._ctx.term()
 

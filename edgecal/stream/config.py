@@ -29,9 +29,9 @@ from edgecal.camera import StereoRig
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
 from edgecal.detection.params import DetectorParams, load_params
 from edgecal.drivers.spec import SourceSpec, spec_from_config
-from edgecal.errors import ConfigError, EdgecalError
+from edgecal.errors import ConfigError, EdgecalError, exception_summary, quote
 from edgecal.pose.types import PoseSettings, QualityBounds
-from edgecal.publish.publisher import DEFAULT_ENDPOINT, check_endpoint
+from edgecal.publish.publisher import DEFAULT_ENDPOINT, endpoint_problem
 from edgecal.publish.sink_settings import OUTPUT_FIELDS, OutputSettings, read_outputs
 from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
@@ -84,7 +84,7 @@ def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
         q = packaged_config_path(name)
         if q.is_file():
             return q
-    raise r.fail(key, f"names a file that does not exist: {name}")
+    raise r.fail(key, f"names a file that does not exist: {quote(name)}")
 
 
 def _read_pose(r: ConfigReader) -> PoseSettings:
@@ -109,10 +109,9 @@ def _read_publish(r: ConfigReader) -> PublishSettings:
     r.reject_unknown(("endpoint", "allow_remote", "hwm") + OUTPUT_FIELDS)  # outputs: read_outputs
     endpoint = r.string("endpoint", DEFAULT_ENDPOINT)
     allow = r.boolean("allow_remote", False)
-    try:
-        check_endpoint(endpoint, allow)
-    except ConfigError as exc:
-        raise r.fail("endpoint", str(exc).split(": ", 1)[-1]) from None
+    problem = endpoint_problem(endpoint, allow)
+    if problem is not None:
+        raise r.fail("endpoint", f"{problem} (got {quote(endpoint)})")
     return PublishSettings(endpoint, allow, r.integer("hwm", 4, minimum=1, maximum=1000))
 
 
@@ -140,6 +139,9 @@ def load_stereo_cameras(path: Path, field: str, source: str) -> StereoRig:
         rig = load_rig(path)
     except EdgecalError as exc:
         raise ConfigError(f"{source}: field '{field}': {exc}") from None
+    except Exception as exc:  # noqa: BLE001 - OpenCV raises cv2.error/SystemError on some files
+        raise ConfigError(f"{source}: field '{field}': {path}: not a readable calibration file "
+                          f"({exception_summary(exc)})") from None
     if not rig.is_stereo:
         raise ConfigError(f"{source}: field '{field}': {path} holds one camera; the live loop needs a stereo rig")
     assert rig.stereo is not None
@@ -156,13 +158,52 @@ def _read_tracking(r: ConfigReader) -> TrackingSettings:
                                         maximum=1.0))
 
 
+MONO_DRIVERS = ("v4l2", "aravis", "dc1394")
+
+
+def _declared_sizes(spec: SourceSpec) -> list[tuple[str, tuple[int, int]]]:
+    """(which camera, (width, height)) for each camera whose image size the config sets."""
+    parts = [("left", spec.left), ("right", spec.right)] if spec.driver == "stereo" else [("source", spec)]
+    return [(name, (p.settings.width, p.settings.height)) for name, p in parts
+            if p is not None and p.settings.width is not None and p.settings.height is not None]
+
+
+def check_source(r: ConfigReader, spec: SourceSpec, rig_size: tuple[int, int]) -> None:
+    """What would only fail once the loop runs: a mono source, a replay that is missing or holds no frames,
+    images of another size than the rig's (a replay's first frame, or the size a camera is set to)."""
+    stereo_hint = "the live loop needs a stereo source (a 'stereo:' section with two cameras, depthai:, or a " \
+        "replay of left/ and right/)"
+    if spec.driver in MONO_DRIVERS:
+        raise r.fail("source", f"{spec.uri} is one camera: {stereo_hint}")
+    sizes = _declared_sizes(spec)
+    if spec.driver == "replay":
+        from edgecal.drivers.replay import replay_contents
+
+        try:
+            contents = replay_contents(spec)
+        except EdgecalError as exc:
+            raise r.fail("source", f"cannot be replayed: {exc}") from None
+        if contents.frames == 0:
+            raise r.fail("source", f"{spec.target} holds no frames to replay")
+        if not contents.stereo:
+            raise r.fail("source", f"{spec.target} holds single images: {stereo_hint}")
+        if contents.image_size is not None:
+            sizes.append(("replay", contents.image_size))
+    w, h = rig_size
+    for name, (sw, sh) in sizes:
+        if (sw, sh) != (w, h):
+            raise r.fail("rig", f"was calibrated at {w}x{h} but the {name} images are {sw}x{sh} "
+                                "(calibrate at the size the cameras deliver)")
+
+
 LIVE_FIELDS = ("source", "rig", "target", "detector", "pose", "tracking", "publish", "loop")
 
 
 def load_live_config(path: str | Path) -> LiveConfig:
     """Load and validate a live-loop config; every problem is a ConfigError naming the field.
 
-    Opens no device: the source section is only parsed; the rig, target and detector files are read.
+    Opens no device: the source section is only parsed (a replay's file list is read and its first image
+    decoded, to check its size against the rig's); the rig, target and detector files are read.
     """
     src = str(path)
     r = ConfigReader(load_yaml_mapping(path), src)
@@ -170,6 +211,7 @@ def load_live_config(path: str | Path) -> LiveConfig:
     source = spec_from_config(r.section("source"))
     rig_path = _resolve(r, "rig", packaged=False)
     cameras = load_stereo_cameras(rig_path, "rig", src)
+    check_source(r, source, cameras.image_size)
     target_path = _resolve(r, "target", packaged=True)
     try:
         target = load_target(target_path)

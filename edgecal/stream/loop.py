@@ -25,11 +25,11 @@ from edgecal.detection.types import CornerPrediction
 from edgecal.drivers.base import Source, StereoFrame, StereoSource
 from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
 from edgecal.drivers.spec import SourceSpec
-from edgecal.errors import DeviceError, EdgecalError, InputError
+from edgecal.errors import DeviceError, EdgecalError, InputError, clip, exception_summary
 from edgecal.pose import Pose, estimate_pose
 from edgecal.publish import PosePublisher, pose_message, status_message
 from edgecal.publish.sinks import FrameOutput, Sink, build_sinks, close_all, fan_out
-from edgecal.stream.config import LiveConfig, load_live_config
+from edgecal.stream.config import LiveConfig, PublishSettings, load_live_config
 from edgecal.stream.notify import SystemdNotifier
 from edgecal.stream.stats import LoopStats
 from edgecal.stream.tracker import BoardTracker, confirmed_fraction
@@ -38,6 +38,9 @@ log = logging.getLogger("edgecal.stream")
 
 READ_SLICE_S = 0.2          # longest blocking read: a stop request is served within about this
 CLOCK_PLAUSIBLE_NS = 60 * 10**9   # a capture stamp further than this from monotonic now is on another clock
+# On a clean stop, the last poses and the "stopping" status may take this long to leave the socket (an abort
+# after SIGTERM's grace period drops them): a subscriber learns the stream ended. Well inside TimeoutStopSec.
+CLOSE_LINGER_S = 0.25
 
 
 def default_source_factory(spec: SourceSpec) -> Source:
@@ -119,6 +122,9 @@ class LiveLoop:
         # thread so that status and the watchdog keep flowing meanwhile.
         self._opener: threading.Thread | None = None
         self._opened: tuple[Source | None, str] | None = None
+        self._opener_started_ns = 0
+        # After a reload that changed the source: the config to go back to if the new source does not open.
+        self._revert_to: LiveConfig | None = None
         self._next_status_ns = 0
         self._last_message = ""
         self._last_error_log_ns = 0
@@ -155,7 +161,7 @@ class LiveLoop:
 
     def run(self) -> int:
         """Run until stopped; returns the exit code (0 after a stop request or the end of a replay)."""
-        self._publisher = PosePublisher(self.config.publish.endpoint, self.config.publish.hwm)
+        self._publisher = open_publisher(self.config.publish)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
         log.info("publishing on %s; source %s", self.config.publish.endpoint, self.config.source.uri)
         try:
@@ -178,7 +184,7 @@ class LiveLoop:
             with self._io:
                 aborted = self._aborted
                 if not aborted:
-                    self._release_io()
+                    self._release_io(CLOSE_LINGER_S)
             self._pool.shutdown(wait=True)
             if self._opener is not None:
                 self._opener.join(0.2)
@@ -217,18 +223,29 @@ class LiveLoop:
                 time.sleep(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
                 return
             self._opened = None
+            self._opener_started_ns = time.monotonic_ns()
             self._opener = threading.Thread(target=self._open_in_background, name="open-source", daemon=True)
             self._opener.start()
             return
         if self._opener.is_alive():
             self._opener.join(READ_SLICE_S)
+            if (not self._ready_sent and self._opener.is_alive()
+                    and time.monotonic_ns() - self._opener_started_ns > self.config.loop.camera_lost_after_s * 1e9):
+                # A camera that does not answer: the service is up and says so, waiting for it.
+                self.state = "camera-lost"
+                self._last_message = f"opening {self.config.source.uri} takes long"
+                self._send_ready(f"waiting for the camera {self.config.source.uri}")
             return
         self._opener = None
         source, error = self._opened or (None, "the source opener ended without a result")
         self._opened = None
         if source is None:
+            if self._revert_to is not None:
+                self._revert_source(error)
+                return
             self._camera_lost(error)
             return
+        self._revert_to = None
         with self._io:
             if self._aborted or self._stop_requested:
                 source.close()
@@ -252,10 +269,16 @@ class LiveLoop:
                 wrapper = LatestStereoFrameSource if isinstance(source, StereoSource) else LatestFrameSource
                 source = wrapper(source, spec.settings.timeout_s)
             source.open()
-        except DeviceError as exc:
+        except Exception as exc:  # DeviceError, InputError (a preload too large) or a driver's bug
+            if not isinstance(exc, EdgecalError):
+                log.exception("unexpected error while opening %s", spec.uri)
             if source is not None:
-                source.close()
-            self._opened = (None, f"cannot open {spec.uri}: {exc}")
+                try:
+                    source.close()
+                except Exception:  # the open already failed; its reason is what counts
+                    log.debug("closing %s after a failed open failed", spec.uri, exc_info=True)
+            why = str(exc) if isinstance(exc, EdgecalError) else exception_summary(exc)
+            self._opened = (None, clip(f"cannot open {spec.uri}: {why}"))
             return
         if self._stop_requested or self._aborted:
             source.close()  # the loop has gone: nobody else would release the camera
@@ -267,18 +290,39 @@ class LiveLoop:
         if self.state != "camera-lost":
             log.warning("camera lost: %s; reopening with back-off", why)
         self.state = "camera-lost"
-        self._last_message = why
+        self._last_message = clip(why)
         self._next_open_ns = time.monotonic_ns() + int(self._backoff_s * 1e9)
         self._backoff_s = min(self._backoff_s * 2, self.config.loop.reconnect_max_s)
+        # The loop runs and reports; a camera absent at boot must not keep the service "starting" until
+        # systemd's start timeout kills it.
+        self._send_ready(f"camera-lost: waiting for {self.config.source.uri}")
 
-    def _release_io(self) -> None:
-        """Say "stopping", release the camera, publish a last status and close the socket (under _io)."""
+    def _revert_source(self, why: str) -> None:
+        """The source of a reloaded config does not open: go back to the config whose source was running."""
+        old, self._revert_to = self._revert_to, None
+        assert old is not None
+        try:
+            self._apply(old, revert_to=None)
+        except Exception as exc:  # noqa: BLE001 - the old socket cannot be bound again: keep the new one
+            log.error("cannot go back to the previous config: %s", exc)
+        self._reload_failed(f"{why}; back to the previous source")
+
+    def _send_ready(self, status: str) -> None:
+        """READY=1, once."""
+        if not self._ready_sent:
+            self._ready_sent = True
+            self.notifier.ready(status)
+            log.info("ready: %s", status)
+
+    def _release_io(self, linger_s: float = 0.0) -> None:
+        """Say "stopping", release the camera, publish a last status and close the socket (under _io);
+        ``linger_s``: how long the last messages may take to leave."""
         self.state = "stopping"
         self.notifier.stopping()
         self._close_source()
         if self._publisher is not None:
             self._report(time.monotonic_ns())
-            self._publisher.close()
+            self._publisher.close(linger_s)
             self._publisher = None
         close_all(self._sinks)
         self._sinks = []
@@ -306,10 +350,14 @@ class LiveLoop:
             self.stats.corrupt_frames += 1
             self._rate_limited_error(f"unreadable frame skipped: {exc}")
             return True
-        except DeviceError as exc:
+        except Exception as exc:  # noqa: BLE001 - DeviceError, or a driver's own bug: the camera may come back
+            if not isinstance(exc, DeviceError):
+                self.stats.errors += 1
+                self._rate_limited_error(f"error while reading {self.config.source.uri}: {exception_summary(exc)}",
+                                         exc_info=True)
             silent_s = (time.monotonic_ns() - self._last_frame_ns) / 1e9
             if silent_s > self.config.loop.camera_lost_after_s:
-                self._camera_lost(str(exc))
+                self._camera_lost(str(exc) if isinstance(exc, DeviceError) else exception_summary(exc))
             elif time.monotonic_ns() - t_read < 10**6:
                 time.sleep(0.02)                 # the error came at once (a dead capture thread): don't spin
             return True
@@ -325,11 +373,9 @@ class LiveLoop:
         self._last_frame_ns = time.monotonic_ns()
         self._backoff_s = self.config.loop.reconnect_min_s
         self._process(frame)
-        if not self._ready_sent:
-            self._ready_sent = True
+        if self.state != "running":
             self.state = "running"
-            self.notifier.ready(f"first frame processed; publishing on {self.config.publish.endpoint}")
-            log.info("first frame processed: ready")
+            self._send_ready(f"first frame processed; publishing on {self.config.publish.endpoint}")
         return True
 
     def _detect(self, image: object, problem: str | None) -> tuple[list, str | None]:
@@ -445,6 +491,8 @@ class LiveLoop:
                  figures["poses_invalid"], f" ({self._last_message})" if self._last_message else "")
         figures["source"] = self.config.source.uri
         with self._io:
+            if self._publisher is None and not self._aborted and self.state != "stopping":
+                self._rebind()
             fan_out(self._all_sinks(), "status", status_message(self.state, figures, now, self._last_message))
         self.notifier.watchdog()
         self.notifier.status(f"{self.state}: {figures['fps']} fps, p99 {lat['p99']} ms")
@@ -452,54 +500,93 @@ class LiveLoop:
 
     def _reload_failed(self, why: str) -> None:
         self.stats.reload_failures += 1
-        self._last_message = f"reload failed, keeping the running config: {why}"
+        # Kept short: it is repeated in every status message until the next good reload.
+        self._last_message = clip(f"reload failed, keeping the running config: {why}")
         log.error("%s", self._last_message)
         self.notifier.ready()
 
     def _do_reload(self) -> None:
-        """Reload the config file; a broken file (or an endpoint that cannot be bound) is logged and the
-        running config kept. The camera is reopened only when the source settings changed."""
+        """Reload the config file. A reload never ends the process: a file that does not load or validate,
+        an endpoint that cannot be bound or any other failure is logged, and the running config kept (with
+        its socket restored if the new one was half set up). The camera is reopened only when the source
+        settings changed; if the new source then cannot be opened, the old config comes back."""
         self.notifier.reloading()
         try:
             new = load_live_config(self.config.path)
         except EdgecalError as exc:
             self._reload_failed(str(exc))
             return
+        except Exception as exc:  # a bug in validation must not end a daemon: log it, keep running
+            log.exception("unexpected error while reloading %s", self.config.path)
+            self._reload_failed(f"{self.config.path}: {exception_summary(exc)}")
+            return
+        try:
+            self._apply(new, revert_to=self.config if self._source is not None else None)
+        except Exception as exc:  # noqa: BLE001 - a socket that cannot be bound, or a bug: keep the running config
+            self._reload_failed(str(exc) if isinstance(exc, EdgecalError) else exception_summary(exc))
+            return
+        self._last_message = ""
+        log.info("config %s reloaded", new.path)
+        self.notifier.ready()
+
+    def _apply(self, new: LiveConfig, revert_to: LiveConfig | None) -> None:
+        """Make ``new`` the running config. What can fail is built first; on a failure the running config is
+        left as it was (socket included) and the error raised. ``revert_to``: the config to come back to if
+        the new source cannot be opened (the old source was running)."""
         old = self.config
-        with self._io:
-            if self._aborted or self._publisher is None:
-                return
-            if new.publish != old.publish:
-                if new.publish.endpoint != old.publish.endpoint:
-                    # Bind the new endpoint before letting go of the old one: if it is taken, nothing changes.
-                    try:
-                        publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
-                    except DeviceError as exc:
-                        self._reload_failed(str(exc))
-                        return
-                    self._publisher.close()
-                else:
-                    self._publisher.close()
-                    publisher = PosePublisher(new.publish.endpoint, new.publish.hwm)
-                self._publisher = publisher
-        if new.outputs != old.outputs:
-            try:
-                sinks = build_sinks(new.outputs)      # opened first: if one fails, the running ones stay
-            except EdgecalError as exc:
-                self._reload_failed(str(exc))
-                return
+        if self._aborted:
+            return
+        tracker = BoardTracker(new.target, new.cameras, new.tracking)
+        # Opened before the running ones are let go: if one fails, they all stay.
+        sinks = build_sinks(new.outputs) if new.outputs != old.outputs else None
+        try:
+            with self._io:
+                if self._publisher is None:          # lost in an earlier failed reload: bind the new one
+                    self._publisher = open_publisher(new.publish)
+                elif new.publish != old.publish:
+                    self._publisher = self._replace_publisher(new.publish, old.publish)
+        except BaseException:
+            close_all(sinks or [])
+            raise
+        if sinks is not None:
             with self._io:
                 old_sinks, self._sinks = self._sinks, sinks
             close_all(old_sinks)
         if new.source != old.source or new.loop.latest_frame_wins != old.loop.latest_frame_wins:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
+            self._revert_to = revert_to
         self.config = new
-        self.tracker = BoardTracker(new.target, new.cameras, new.tracking)
+        self.tracker = tracker
         self._backoff_s = new.loop.reconnect_min_s
-        self._last_message = ""
-        log.info("config %s reloaded", new.path)
-        self.notifier.ready()
+
+    def _replace_publisher(self, new: PublishSettings, old: PublishSettings) -> PosePublisher:
+        """A publisher bound with ``new`` in place of the running one (under _io). A new endpoint is bound
+        before the old one is let go (if it is taken, nothing changes); the same endpoint with other settings
+        is closed and bound again, and bound with ``old`` again if that fails."""
+        assert self._publisher is not None
+        if new.endpoint != old.endpoint:
+            publisher = open_publisher(new)
+            self._publisher.close()
+            return publisher
+        self._publisher.close()
+        self._publisher = None
+        try:
+            return open_publisher(new)
+        except Exception:
+            try:
+                self._publisher = open_publisher(old)
+            except EdgecalError as exc:     # the port was taken meanwhile: retried every status period
+                log.error("cannot bind the pose stream again: %s", exc)
+            raise
+
+    def _rebind(self) -> None:
+        """Bind the pose stream again after a failed reload lost it (under _io; tried once per status period)."""
+        try:
+            self._publisher = open_publisher(self.config.publish)
+            log.info("pose stream bound again on %s", self.config.publish.endpoint)
+        except EdgecalError as exc:
+            self._rate_limited_error(f"pose stream not bound: {exc}")
 
     def _rate_limited_error(self, text: str, exc_info: bool = False) -> None:
         """Log at most one such error per status period (a broken camera must not flood the journal)."""
@@ -507,6 +594,11 @@ class LiveLoop:
         if now - self._last_error_log_ns >= int(self.config.loop.status_period_s * 1e9):
             self._last_error_log_ns = now
             log.error("%s", text, exc_info=exc_info)
+
+
+def open_publisher(settings: PublishSettings) -> PosePublisher:
+    """The pose stream's socket, bound as ``settings`` say."""
+    return PosePublisher(settings.endpoint, settings.hwm)
 
 
 def run_live(config_path: str, notifier: SystemdNotifier | None = None) -> int:
