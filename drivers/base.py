@@ -64,6 +64,9 @@ class Source(abc.ABC):
     # True when stamp_ns is on this host's CLOCK_MONOTONIC now (a live camera), so that
     # time.monotonic_ns() - stamp_ns is the frame's age; False for replays of recorded stamps.
     live: bool = False
+    # True when a frame is made when it is read, as fast as it is read (a replay with pace: fast): a
+    # latest-frame-wins reader then waits for its frame to be taken instead of overwriting it in a spin.
+    on_demand: bool = False
 
     def describe(self) -> dict:
         """The source's URI and settings as plain JSON-able values (written into recording manifests)."""

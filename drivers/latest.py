@@ -21,6 +21,8 @@ class LatestFrameSource(Source):
     (e.g. DeviceError when the camera stops sending) is raised by the next ``read`` and ends the
     thread; an InputError for one unreadable frame (a corrupt file in a replay) is raised once and
     reading goes on. When a finite inner source ends, ``read`` returns the last unread frame, then None.
+    An ``on_demand`` inner source (a replay with pace: fast) is read only once the last frame was taken:
+    it would otherwise make and overwrite frames as fast as it can, starving the consumer of the CPU.
     """
 
     def __init__(self, inner: Source, timeout_s: float = 2.0) -> None:
@@ -59,6 +61,12 @@ class LatestFrameSource(Source):
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
+                if self.inner.on_demand:
+                    with self._cond:
+                        while self._slot is not None and not self._stop.is_set():
+                            self._cond.wait(0.1)
+                    if self._stop.is_set():
+                        return
                 try:
                     frame = self.inner.read(self.timeout_s)
                 except InputError as exc:
@@ -105,11 +113,14 @@ class LatestFrameSource(Source):
                 self._cond.wait(remaining)
             frame, self._slot = self._slot, None
             self.delivered += 1
+            self._cond.notify_all()          # an on-demand reader waits for the slot to be free
             return frame
 
     def close(self) -> None:
         """Stop the thread and close the inner source (also after an error)."""
         self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
         thread, self._thread = self._thread, None
         try:
             if thread is not None:

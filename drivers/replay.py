@@ -201,6 +201,7 @@ class ReplaySource(Source):
         self._cap: cv2.VideoCapture | None = None
         self._seq: _Sequence | None = None
         self._pacer = Pacer(spec.settings.pace == "fast")
+        self.on_demand = self._pacer.fast
         self._span_ns = 0
         self._images: list[np.ndarray | Unreadable] | None = None  # preload: the decoded frames
         if video is not None and spec.settings.preload:
@@ -293,6 +294,7 @@ class StereoReplaySource(StereoSource):
         self.description = description
         self._seq: _Sequence | None = None
         self._pacer = Pacer(spec.settings.pace == "fast")
+        self.on_demand = self._pacer.fast
         self._span_ns = 0
         self._images: list[np.ndarray | Unreadable] | None = None  # preload: left, right, left, right ...
 

@@ -153,3 +153,37 @@ def test_notify_never_blocks_on_a_full_socket(tmp_path: Path) -> None:
     notifier.close()
     server.close()
     assert not SystemdNotifier("").enabled and SystemdNotifier("").ready() is False
+
+
+def test_ready_while_the_camera_is_absent_at_boot(sequence: Path, tmp_path: Path) -> None:
+    """Both cameras unplugged at start: READY=1 still comes once the loop runs (systemd would otherwise kill
+    and restart the unit forever), the status says camera-lost, the watchdog is fed, SIGTERM ends it cleanly."""
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", sequence, endpoint,
+                       loop={"camera_lost_after_s": 0.5, "reconnect_min_s": 0.2, "reconnect_max_s": 0.5})
+    doc = yaml.safe_load(cfg.read_text())
+    doc["source"] = {"stereo": {"left": {"uri": "v4l2:/dev/video-edgecal-absent0"},
+                                "right": {"uri": "v4l2:/dev/video-edgecal-absent1"}}}
+    cfg.write_text(yaml.safe_dump(doc))
+    notify = NotifySocket(tmp_path / "notify.sock")
+    sub = Subscriber(endpoint)
+    log = tmp_path / "run.log"
+    proc = start(cfg, notify, log)
+    try:
+        assert notify.wait_for("READY=1", 90), log.read_text()
+        ready = next(m for m in notify.received if "READY=1" in m.splitlines())
+        assert "STATUS=camera-lost" in ready
+        assert sub.wait_for(lambda: any(m["state"] == "camera-lost" for m in sub.of("status")), 10)
+        assert "no such device" in sub.of("status")[-1]["message"]
+        n = sum("WATCHDOG=1" in m for m in notify.received)
+        assert wait_until(lambda: sum("WATCHDOG=1" in m for m in notify.received) > n + 1, 5)
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        sub.close()
+        notify.close()
+    assert "Traceback" not in log.read_text()

@@ -320,3 +320,18 @@ def test_preload_settings_are_validated_and_refused_for_a_video(tmp_path: Path) 
     video.write_bytes(b"\0" * 64)      # refused by its kind before it is opened
     with pytest.raises(InputError, match=r"clip\.avi: preload works for image files only, not a video"):
         open_source(f"replay:{video}?preload=true")
+
+
+@pytest.mark.parametrize("layout", ["mono folder", "stereo folder"])
+def test_latest_frame_wins_over_a_fast_replay_waits_for_the_reader(tmp_path: Path, layout: str) -> None:
+    """pace: fast makes frames as fast as they are read: the latest-frame-wins thread must not spin making
+    and overwriting them (it did: 370,000 drops per second) but hand each one over in turn."""
+    write = {"mono folder": _write_mono_folder, "stereo folder": _write_stereo_folder}[layout]
+    path = write(tmp_path / "seq", 3)
+    with open_source(f"replay:{path}?pace=fast&loop=true&latest_only=true&preload=true") as src:
+        seqs = []
+        for _ in range(6):
+            time.sleep(0.05)                 # a slow consumer
+            seqs.append(_frames_of(src.read(1.0))[0].seq)
+        assert src.dropped == 0
+    assert seqs == list(range(6))
