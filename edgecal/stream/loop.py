@@ -126,7 +126,10 @@ class LiveLoop:
         # After a reload that changed the source: the config to go back to if the new source does not open.
         self._revert_to: LiveConfig | None = None
         self._next_status_ns = 0
-        self._last_message = ""
+        # Why the state is what it is, for the status message: the camera's last problem and the last failed
+        # reload's, kept apart so that a camera coming back does not hide that the new config was refused.
+        self._camera_message = ""
+        self._reload_message = ""
         self._last_error_log_ns = 0
 
     # -- requests from outside (signal handlers, other threads) -------------------------------------
@@ -233,7 +236,7 @@ class LiveLoop:
                     and time.monotonic_ns() - self._opener_started_ns > self.config.loop.camera_lost_after_s * 1e9):
                 # A camera that does not answer: the service is up and says so, waiting for it.
                 self.state = "camera-lost"
-                self._last_message = f"opening {self.config.source.uri} takes long"
+                self._camera_message = f"opening {self.config.source.uri} takes long"
                 self._send_ready(f"waiting for the camera {self.config.source.uri}")
             return
         self._opener = None
@@ -257,7 +260,7 @@ class LiveLoop:
             log.info("camera %s reopened", self.config.source.uri)
             self.stats.reconnects += 1
         self.state = "running" if self._ready_sent else "starting"
-        self._last_message = ""
+        self._camera_message = ""
 
     def _open_in_background(self) -> None:
         """Create and open the configured source; leaves (source, "") or (None, why) in self._opened."""
@@ -290,7 +293,7 @@ class LiveLoop:
         if self.state != "camera-lost":
             log.warning("camera lost: %s; reopening with back-off", why)
         self.state = "camera-lost"
-        self._last_message = clip(why)
+        self._camera_message = clip(why)
         self._next_open_ns = time.monotonic_ns() + int(self._backoff_s * 1e9)
         self._backoff_s = min(self._backoff_s * 2, self.config.loop.reconnect_max_s)
         # The loop runs and reports; a camera absent at boot must not keep the service "starting" until
@@ -477,6 +480,11 @@ class LiveLoop:
             fan_out(self._all_sinks(), "frame", out)
         self.stats.frame_done(now - capture_ns, pose.valid, failed_images)
 
+    @property
+    def _last_message(self) -> str:
+        """The status message: the failed reload's reason and the camera's problem, whichever there are."""
+        return clip("; ".join(m for m in (self._reload_message, self._camera_message) if m))
+
     def _all_sinks(self) -> list[Sink]:
         """Every output the loop publishes to: the ZeroMQ stream and the configured sinks (under _io)."""
         return ([self._publisher] if self._publisher is not None else []) + self._sinks
@@ -501,8 +509,8 @@ class LiveLoop:
     def _reload_failed(self, why: str) -> None:
         self.stats.reload_failures += 1
         # Kept short: it is repeated in every status message until the next good reload.
-        self._last_message = clip(f"reload failed, keeping the running config: {why}")
-        log.error("%s", self._last_message)
+        self._reload_message = clip(f"reload failed, keeping the running config: {why}")
+        log.error("%s", self._reload_message)
         self.notifier.ready()
 
     def _do_reload(self) -> None:
@@ -525,7 +533,7 @@ class LiveLoop:
         except Exception as exc:  # noqa: BLE001 - a socket that cannot be bound, or a bug: keep the running config
             self._reload_failed(str(exc) if isinstance(exc, EdgecalError) else exception_summary(exc))
             return
-        self._last_message = ""
+        self._reload_message = ""
         log.info("config %s reloaded", new.path)
         self.notifier.ready()
 
