@@ -144,7 +144,9 @@ def test_latest_only_setting_wraps_the_source(tmp_path) -> None:
     from driver_frames import render_frame
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"{i}.png"), render_frame(i))
-    with open_source(f"replay:{tmp_path}?pace=fast&latest_only=true") as src:
+    # Paced (a camera at 100 fps): frames come faster than they are read, and only the newest is kept.
+    # (pace=fast makes a frame per read instead: tests/test_drivers_replay.py.)
+    with open_source(f"replay:{tmp_path}?fps=100&latest_only=true") as src:
         assert isinstance(src, LatestFrameSource)
         time.sleep(0.2)
         last = src.read(1.0)
