@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "edgecal.commands.detect",
     "edgecal.commands.run",
     "edgecal.commands.listen",
+    "edgecal.commands.keys",
     "edgecal.commands.collect",
     "edgecal.commands.calibrate",
     "edgecal.commands.render",

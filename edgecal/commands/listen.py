@@ -2,6 +2,8 @@
 
 Also the example for writing your own subscriber: a ZeroMQ SUB socket, connect, subscribe to the
 topics you want, and parse the second frame of each message as JSON (schema in README.md, "Pose stream").
+A stream bound beyond the loopback interface is CURVE-secured: give this subscriber's key pair (--key) and
+the publisher's public key (--server-key); the publisher must hold this subscriber's public key.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import time
 import zmq
 
 from edgecal.errors import QUOTE_MAX_CHARS, InputError, quote
+from edgecal.publish.curve import load_client_keys
 
 TOPICS = ("pose", "status")
 
@@ -29,6 +32,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--count", type=int, default=0, help="stop after this many messages (0 = never)")
     p.add_argument("--timeout", type=float, default=0.0,
                    help="stop with exit code 1 after this many seconds without a message (0 = wait forever)")
+    p.add_argument("--key", metavar="NAME.key_secret",
+                   help="this subscriber's key pair (from `edgecal keys`): subscribe to a CURVE-secured stream")
+    p.add_argument("--server-key", metavar="SERVER.key",
+                   help="the publisher's public key file (with --key)")
     return p
 
 
@@ -75,9 +82,19 @@ def format_message(msg: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     """Subscribe and print until --count messages, --timeout of silence, or Ctrl-C."""
+    keys = None
+    if args.key or args.server_key:
+        if not (args.key and args.server_key):
+            raise InputError("--key and --server-key go together: this subscriber's NAME.key_secret and the "
+                             "publisher's public key file")
+        keys = load_client_keys(args.key, args.server_key)
     ctx = zmq.Context()
     sock = ctx.socket(zmq.SUB)
     sock.setsockopt(zmq.LINGER, 0)
+    if keys is not None:
+        sock.curve_secretkey = keys.secret
+        sock.curve_publickey = keys.public
+        sock.curve_serverkey = keys.server_public
     try:
         sock.connect(args.endpoint)
     except zmq.ZMQError as exc:

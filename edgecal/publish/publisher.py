@@ -4,6 +4,9 @@ Each message is two frames: the topic (b"pose" or b"status", so subscribers can 
 body. Sends are non-blocking with a small high-water mark: a slow or dead subscriber loses messages,
 the loop never waits for it. ZeroMQ drops silently at a subscriber's high-water mark, so the publisher
 cannot count those losses; ``send_failures`` counts only sends the socket itself refused.
+
+With CURVE keys (required beyond the loopback interface; see edgecal.publish.curve) the stream is
+encrypted and only subscribers whose public key the publisher knows are let in.
 """
 
 from __future__ import annotations
@@ -13,14 +16,17 @@ import logging
 from typing import Any
 
 import zmq
+from zmq.auth.thread import ThreadAuthenticator
 
 from edgecal.errors import ConfigError, DeviceError, quote
+from edgecal.publish.curve import AllowedKeys, ServerKeys
 from edgecal.publish.messages import POSE_TOPIC, STATUS_TOPIC, encode
 from edgecal.publish.sinks import FrameOutput, Sink
 
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5560"
+HANDSHAKE_TIMEOUT_S = 2.0        # publish.handshake_timeout_s: see PosePublisher
 
 
 def _tcp_host_port(endpoint: str) -> tuple[str, str]:
@@ -85,15 +91,28 @@ class PosePublisher(Sink):
 
     name = "zeromq"
 
-    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, hwm: int = 4, context: zmq.Context | None = None) -> None:
+    def __init__(self, endpoint: str = DEFAULT_ENDPOINT, hwm: int = 4, context: zmq.Context | None = None, *,
+                 curve: ServerKeys | None = None, handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S) -> None:
         self.endpoint = endpoint
         self.sent = 0
         self.send_failures = 0
         self._own_context = context is None
         self._ctx = context or zmq.Context()
+        self._auth: ThreadAuthenticator | None = None
         self._sock = self._ctx.socket(zmq.PUB)
         self._sock.setsockopt(zmq.SNDHWM, hwm)
         self._sock.setsockopt(zmq.LINGER, 0)       # close at once: queued messages are stale anyway
+        # A connection that has not finished ZeroMQ's handshake within this is dropped: idle TCP connections
+        # (a port scan, a flood) cannot hold file descriptors and starve real subscribers.
+        self._sock.setsockopt(zmq.HANDSHAKE_IVL, int(handshake_timeout_s * 1000))
+        if curve is not None:
+            # pyzmq's ZAP handler checks each subscriber's public key during the CURVE handshake.
+            self._auth = ThreadAuthenticator(self._ctx, log=logging.getLogger("edgecal.publish.zap"))
+            self._auth.start()
+            self._auth.configure_curve_callback("*", AllowedKeys(curve.clients))
+            self._sock.curve_secretkey = curve.secret
+            self._sock.curve_publickey = curve.public
+            self._sock.curve_server = True
         try:
             self._sock.bind(endpoint)
         except zmq.ZMQError as exc:
@@ -133,6 +152,9 @@ class PosePublisher(Sink):
         """
         if not self._sock.closed:
             self._sock.close(linger=int(linger_s * 1000))
+        if self._auth is not None:
+            self._auth.stop()
+            self._auth = None
         if self._own_context and not self._ctx.closed:
             self._ctx.term()
 

@@ -11,7 +11,8 @@
               outlier_min_px: 0.5,
               min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
     tracking: {enabled: true, max_gap_s: 0.5, min_confirmed_fraction: 0.6}
-    publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4}
+    publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4, handshake_timeout_s: 2.0,
+              curve: {server_key: keys/server.key_secret, client_keys: keys/clients}}   # curve: beyond loopback
     loop:    {latest_frame_wins: true, status_period_s: 1.0, camera_lost_after_s: 2.0,
               reconnect_min_s: 0.5, reconnect_max_s: 10.0, stop_at_end: true}
 
@@ -29,9 +30,10 @@ from edgecal.camera import StereoRig
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
 from edgecal.detection.params import DetectorParams, load_params
 from edgecal.drivers.spec import SourceSpec, spec_from_config
-from edgecal.errors import ConfigError, EdgecalError, exception_summary, quote
+from edgecal.errors import ConfigError, EdgecalError, InputError, exception_summary, quote
 from edgecal.pose.types import PoseSettings, QualityBounds
-from edgecal.publish.publisher import DEFAULT_ENDPOINT, endpoint_problem
+from edgecal.publish.curve import ServerKeys, load_server_keys, read_key_file
+from edgecal.publish.publisher import DEFAULT_ENDPOINT, HANDSHAKE_TIMEOUT_S, endpoint_problem, is_local_endpoint
 from edgecal.publish.sink_settings import OUTPUT_FIELDS, OutputSettings, read_outputs
 from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
@@ -56,6 +58,8 @@ class PublishSettings:
     endpoint: str = DEFAULT_ENDPOINT
     allow_remote: bool = False
     hwm: int = 4
+    handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S
+    curve: ServerKeys | None = None     # required beyond loopback; optional (and then enforced) on it
 
 
 @dataclass(frozen=True)
@@ -105,14 +109,35 @@ def _read_pose(r: ConfigReader) -> PoseSettings:
         bounds=bounds)
 
 
+def _read_curve(r: ConfigReader) -> ServerKeys:
+    r.reject_unknown(("server_key", "client_keys"))
+    server_key = Path(r.string("server_key")).expanduser()
+    client_keys = Path(r.string("client_keys")).expanduser()
+    try:
+        read_key_file(server_key, need_secret=True)    # its own field named when it is the wrong one
+    except InputError as exc:
+        raise r.fail("server_key", f"cannot be used: {exc}") from None
+    try:
+        return load_server_keys(server_key, client_keys)
+    except InputError as exc:
+        raise r.fail("client_keys", f"cannot be used: {exc}") from None
+
+
 def _read_publish(r: ConfigReader) -> PublishSettings:
-    r.reject_unknown(("endpoint", "allow_remote", "hwm") + OUTPUT_FIELDS)  # outputs: read_outputs
+    r.reject_unknown(("endpoint", "allow_remote", "hwm", "handshake_timeout_s", "curve")
+                     + OUTPUT_FIELDS)  # outputs: read_outputs
     endpoint = r.string("endpoint", DEFAULT_ENDPOINT)
     allow = r.boolean("allow_remote", False)
     problem = endpoint_problem(endpoint, allow)
     if problem is not None:
         raise r.fail("endpoint", f"{problem} (got {quote(endpoint)})")
-    return PublishSettings(endpoint, allow, r.integer("hwm", 4, minimum=1, maximum=1000))
+    curve = _read_curve(r.section("curve")) if r.has("curve") else None
+    if curve is None and not is_local_endpoint(endpoint):
+        raise r.fail("curve", f"is missing: beyond the loopback interface ({quote(endpoint)}) only subscribers "
+                              "with a known key may listen; give curve.server_key and curve.client_keys "
+                              "(`edgecal keys` makes key pairs)")
+    return PublishSettings(endpoint, allow, r.integer("hwm", 4, minimum=1, maximum=1000),
+                           r.number("handshake_timeout_s", HANDSHAKE_TIMEOUT_S, minimum=0.1, maximum=60), curve)
 
 
 def _read_loop(r: ConfigReader) -> LoopSettings:

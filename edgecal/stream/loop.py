@@ -166,7 +166,9 @@ class LiveLoop:
         """Run until stopped; returns the exit code (0 after a stop request or the end of a replay)."""
         self._publisher = open_publisher(self.config.publish)
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
-        log.info("publishing on %s; source %s", self.config.publish.endpoint, self.config.source.uri)
+        curve = self.config.publish.curve
+        log.info("publishing on %s%s; source %s", self.config.publish.endpoint,
+                 f" (CURVE, {len(curve.clients)} subscriber keys)" if curve else "", self.config.source.uri)
         try:
             self._sinks = build_sinks(self.config.outputs)
             self.warm_up()
@@ -606,7 +608,8 @@ class LiveLoop:
 
 def open_publisher(settings: PublishSettings) -> PosePublisher:
     """The pose stream's socket, bound as ``settings`` say."""
-    return PosePublisher(settings.endpoint, settings.hwm)
+    return PosePublisher(settings.endpoint, settings.hwm, curve=settings.curve,
+                         handshake_timeout_s=settings.handshake_timeout_s)
 
 
 def run_live(config_path: str, notifier: SystemdNotifier | None = None) -> int:
