@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -263,3 +264,32 @@ def test_abort_releases_camera_and_socket_while_a_frame_is_in_flight(sequence: t
     assert not th.is_alive() and result == [0]
     assert len(sub.of("pose")) == n and sub.of("status")[-1]["state"] == "stopping"
     assert loop.stats.errors == 0
+
+
+def test_a_source_of_only_unreadable_frames_is_not_read_in_a_spin(sequence: tuple[Path, dict],
+                                                                   tmp_path: Path) -> None:
+    """Every file broken (or no descriptors left to open them): counted, but read at most ~20 times a second
+    once no frame has come for a second (it was ~100,000 a second)."""
+    folder, _ = sequence
+    bad = tmp_path / "bad"
+    for side in ("left", "right"):
+        (bad / side).mkdir(parents=True)
+        (bad / side / "000000.png").write_bytes((folder / side / "000000.png").read_bytes())
+        (bad / side / "000001.png").write_bytes(b"not a png")
+    (bad / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
+    (bad / "left" / "000000.png").write_bytes(b"not a png either")   # every pair has an unreadable image
+    cfg = write_config(tmp_path / "live.yaml", bad, free_endpoint(), source_extra={"pace": "fast", "loop": True},
+                       loop={"latest_frame_wins": False})
+    loop = LiveLoop(load_live_config(cfg))
+    th, result = run_in_thread(loop)
+    try:
+        assert wait_until(lambda: loop.stats.corrupt_frames > 0, 30)
+        time.sleep(1.2)
+        before = loop.stats.corrupt_frames
+        time.sleep(1.0)
+        per_second = loop.stats.corrupt_frames - before
+    finally:
+        loop.request_stop()
+        th.join(10)
+    assert result == [0] and loop.stats.frames == 0
+    assert 0 < per_second < 40, per_second

@@ -41,6 +41,7 @@ CLOCK_PLAUSIBLE_NS = 60 * 10**9   # a capture stamp further than this from monot
 # On a clean stop, the last poses and the "stopping" status may take this long to leave the socket (an abort
 # after SIGTERM's grace period drops them): a subscriber learns the stream ended. Well inside TimeoutStopSec.
 CLOSE_LINGER_S = 0.25
+UNREADABLE_PAUSE_S = 0.05   # between reads while a source gives nothing but unreadable frames
 
 
 def default_source_factory(spec: SourceSpec) -> Source:
@@ -354,6 +355,10 @@ class LiveLoop:
         except InputError as exc:                # an unreadable frame of a replay: skip it
             self.stats.corrupt_frames += 1
             self._rate_limited_error(f"unreadable frame skipped: {exc}")
+            if time.monotonic_ns() - t_read < 10**6 and time.monotonic_ns() - self._last_frame_ns > 10**9:
+                # Nothing but unreadable frames for a second (a folder of broken files, no descriptors
+                # left): do not spin through them at full speed.
+                time.sleep(UNREADABLE_PAUSE_S)
             return True
         except Exception as exc:  # noqa: BLE001 - DeviceError, or a driver's own bug: the camera may come back
             if not isinstance(exc, DeviceError):
@@ -468,7 +473,8 @@ class LiveLoop:
             self.tracker.update(pose, frame.stamp_ns)
         except Exception as exc:     # a bug must not kill a daemon that runs for weeks: log, count, go on
             self.stats.errors += 1
-            self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exc!r}", exc_info=True)
+            self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exception_summary(exc)}",
+                                     exc_info=True)
             pose = Pose.invalid(f"internal error: {type(exc).__name__}")
             self.tracker.reset()
         now = time.monotonic_ns()
