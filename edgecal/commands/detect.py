@@ -30,7 +30,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="refuse images of more pixels, from the header before decoding "
                         f"(default {DEFAULT_MAX_PIXELS} = 2^26)")
     p.add_argument("--params", metavar="FILE.yaml", help=f"detector thresholds ({DEFAULT_PARAMS_FILE_HINT})")
-    p.add_argument("--draw", metavar="DIR", help="write an overlay PNG per image into DIR")
+    p.add_argument("--draw", metavar="DIR", help="write an overlay PNG per image into DIR (board outline, first "
+                                                 "corner and row direction, ids, name; 'not found' on a miss)")
+    p.add_argument("--debug", action="store_true", help="with --draw: add the detector's layers (candidates, "
+                                                        "accepted points, border directions)")
     p.add_argument("--force", action="store_true", help="overwrite existing overlays in --draw DIR")
     p.add_argument("images", nargs="+", metavar="IMAGE", help="image files or folders of images")
     return p
@@ -69,5 +72,6 @@ def run(args: argparse.Namespace) -> int:
                   "ms": round(ms, 2)}
         print(json.dumps(record), flush=True)
         if draw_dir is not None:
-            write_overlay(draw_dir / (Path(path).stem + "_detect.png"), grey, debug, force=args.force)
+            write_overlay(draw_dir / (Path(path).stem + "_detect.png"), grey, debug, force=args.force,
+                          show_debug=args.debug)
     return 2 if failed else 0
