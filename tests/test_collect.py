@@ -143,3 +143,17 @@ def test_blurred_and_moved_boards_are_not_sharp():
     assert not is_sharp(edge_width_px(blurred, cs, target), square_px(cs))
     streak = cv2.filter2D(frame.left.image, -1, np.full((1, 9), 1 / 9))  # 9 px of horizontal motion
     assert not is_sharp(edge_width_px(streak, cs, target), square_px(cs))
+
+
+def test_small_squares_opencv_cannot_measure_are_not_called_blurred():
+    """estimateChessboardSharpness answers 9999 on a far, tilted board (14 px squares): that was counted as a
+    blurred board, and such views were never kept."""
+    from edgecal.calibration.collection import edge_width_px, is_sharp, square_px
+    from edgecal.commands.collect import Collector
+    target = parse_board_spec("9x6", 30)
+    rig = handheld_rig(5, stereo=True)
+    frame = next(f for f in handheld_sequence(5, rig, n_poses=30) if f.index == 18)
+    cs = Collector(target, 1).consider([frame.left.image]).corners[0]
+    assert len(cs) == 54 and square_px(cs) < 16
+    width = edge_width_px(frame.left.image, cs, target)
+    assert is_sharp(width, square_px(cs)), width

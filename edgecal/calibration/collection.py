@@ -33,6 +33,7 @@ STILL_PX = 1.0            # corners moved less than this since the previous fram
 # 10+ px (renders, edgecal.synth.handheld). Big squares may exceed it while still sharp: 8 % of a square.
 MAX_EDGE_WIDTH_PX = 3.5
 EDGE_WIDTH_PER_SQUARE = 0.08
+NO_MEASUREMENT = 9999.0   # what estimateChessboardSharpness returns when it has no profile to measure
 MIN_FACE_FRACTION = 0.5   # a box view needs at least this share of every face's corners
 MIN_SHARED_CORNERS = 6    # corners seen in two frames to compare their positions
 
@@ -110,7 +111,8 @@ def edge_width_px(grey: np.ndarray, cs: CornerSet, target: Target) -> float:
         # both edge directions: motion blur widens only the edges across the motion
         for vertical in (False, True):
             value = cv2.estimateChessboardSharpness(grey, (board.cols, board.rows), pts, vertical=vertical)[0][0]
-            if np.isfinite(value) and value > 0:
+            # OpenCV answers 9999 when it cannot measure (small squares): no measurement, not a blur
+            if np.isfinite(value) and 0 < value < NO_MEASUREMENT:
                 widths.append(float(value))
     return float(np.max(widths)) if widths else math.nan
 
