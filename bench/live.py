@@ -55,7 +55,7 @@ THRESHOLDS = {"fps": 30.0, "p99_ms": 33.0, "position_mm": 1.0, "rotation_deg": 0
 
 
 def ensure_sequence(folder: Path, n_frames: int, seed: int = 7, photometric: str = "clean",
-                    exposure_ms: float = 0.0) -> dict:
+                    exposure_ms: float = 0.0, lens: str = "radtan") -> dict:
     """Render the robot sequence (and its true rig.yaml) unless it is already there with enough frames.
 
     ``photometric`` is edgecal.synth's level (clean, normal, hard); ``exposure_ms`` > 0 blurs the motion."""
@@ -66,9 +66,9 @@ def ensure_sequence(folder: Path, n_frames: int, seed: int = 7, photometric: str
             return truth
     from edgecal.synth import scenes, writer
     t0 = time.perf_counter()
-    rig = scenes.robot_rig(seed, (1280, 800))
+    rig = scenes.robot_rig(seed, (1280, 800), lens=lens)
     frames = scenes.robot_sequence(seed, n_frames, size=(1280, 800), photometric=photometric,
-                                   exposure_ms=exposure_ms)
+                                   exposure_ms=exposure_ms, lens=lens)
     writer.write_robot_sequence(folder, frames, rig, scenes.robot_target(), 30.0, force=True)
     truth = json.loads(truth_file.read_text())
     write_rig(truth["rig"], folder / "rig.yaml")
@@ -281,12 +281,17 @@ def main() -> int:
     ap.add_argument("--photometric", default="clean", choices=("clean", "normal", "hard"),
                     help="rendering conditions (edgecal.synth levels; default clean, the issue's targets)")
     ap.add_argument("--exposure-ms", type=float, default=0.0, help="motion blur: exposure time of each frame")
+    ap.add_argument("--lens", default="radtan", choices=("radtan", "fisheye", "rational"),
+                    help="the rig's lens model (fisheye: 110-120 deg Kannala-Brandt; default radtan, ~70 deg)")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     clean = args.photometric == "clean" and not args.exposure_ms
     folder = out / ("robot" if clean else f"robot-{args.photometric}-{args.exposure_ms:g}ms")
-    truth = ensure_sequence(folder, args.frames, photometric=args.photometric, exposure_ms=args.exposure_ms)
+    if args.lens != "radtan":
+        folder = folder.with_name(folder.name + f"-{args.lens}")
+    truth = ensure_sequence(folder, args.frames, photometric=args.photometric, exposure_ms=args.exposure_ms,
+                            lens=args.lens)
     results: dict = {"frames": len(truth["frames"]), "size": "1280x800", "cores": os.cpu_count(),
                      "photometric": args.photometric, "exposure_ms": args.exposure_ms,
                      "preload": not args.decode, "load_average_before": os.getloadavg()[0]}

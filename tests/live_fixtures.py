@@ -45,10 +45,12 @@ def write_rig_yaml(truth_rig: dict, path: Path) -> Path:
     return path
 
 
-def render_robot(folder: Path, n_frames: int, seed: int = 3) -> dict:
-    """Render ``n_frames`` of the robot sequence into ``folder`` (left/, right/, truth.json); return the truth."""
-    rig = scenes.robot_rig(seed, (1280, 800))
-    frames = scenes.robot_sequence(seed, n_frames, size=(1280, 800), photometric="clean")
+def render_robot(folder: Path, n_frames: int, seed: int = 3, lens: str = "radtan") -> dict:
+    """Render ``n_frames`` of the robot sequence into ``folder`` (left/, right/, truth.json); return the truth.
+
+    ``lens``: the rig's lens model (scenes.robot_rig)."""
+    rig = scenes.robot_rig(seed, (1280, 800), lens=lens)
+    frames = scenes.robot_sequence(seed, n_frames, size=(1280, 800), photometric="clean", lens=lens)
     writer.write_robot_sequence(folder, frames, rig, scenes.robot_target(), 30.0)
     truth = json.loads((folder / "truth.json").read_text())
     write_rig_yaml(truth["rig"], folder / "rig.yaml")

@@ -58,8 +58,7 @@ def _pick(rng: np.random.Generator, value: FloatOrRange) -> float:
 
 
 def random_camera(rng: np.random.Generator, size: tuple[int, int] = (640, 480),
-                  hfov_deg: FloatOrRange = (55.0, 72.0), distortion: str = "mild",
-                  name: str = "cam") -> CameraModel:
+                  hfov_deg: FloatOrRange = (55.0, 72.0), distortion: str = "mild") -> CameraModel:
     """A plausible camera: random field of view, principal point near the centre, distortion level
     "none", "mild" (|k1| <= 0.15) or "strong" (barrel up to k1 = -0.3) of the radtan lens, or the lens models
     "rational" (a wide lens, 90-110 deg unless ``hfov_deg`` says otherwise) and "fisheye" (Kannala-Brandt,
@@ -300,8 +299,8 @@ def box_stereo(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), distance_
     """
     rng = _rng(seed, "box")
     tgt = target or box_target()
-    left_cam = random_camera(rng, size, hfov_deg=(55.0, 65.0), name="left")
-    right_cam = random_camera(rng, size, hfov_deg=(55.0, 65.0), name="right")
+    left_cam = random_camera(rng, size, hfov_deg=(55.0, 65.0))
+    right_cam = random_camera(rng, size, hfov_deg=(55.0, 65.0))
     if rig is not None:
         left_cam, right_cam = rig.left, rig.right
         baseline_mm = float(np.linalg.norm(rig.T_right_left_mm))
@@ -413,11 +412,20 @@ class RobotRig:
                 "convention": "X_right = R_right_left @ X_left + T_right_left_mm (camera frames, mm)"}
 
 
-def robot_rig(seed: SeedLike, size: tuple[int, int] = (1280, 800), baseline_mm: float = 75.0) -> RobotRig:
-    """The rig of :func:`robot_sequence`: 0.8 m from the robot's area, 0.65 m up, looking down at it (~0.95 m)."""
+# Field of view of the robot rig's cameras per lens model: a ~70 deg pinhole, or a 110-120 deg fisheye whose
+# squares at the robot are still ~0.6 of the pinhole's (both rigs then meet the same pose accuracy).
+ROBOT_HFOV_DEG = {"radtan": (68.0, 72.0), "fisheye": (110.0, 120.0), "rational": (85.0, 95.0)}
+
+
+def robot_rig(seed: SeedLike, size: tuple[int, int] = (1280, 800), baseline_mm: float = 75.0,
+              lens: str = "radtan") -> RobotRig:
+    """The rig of :func:`robot_sequence`: 0.8 m from the robot's area, 0.65 m up, looking down at it (~0.95 m).
+
+    ``lens``: radtan (mild distortion), fisheye or rational (random_camera's lens models)."""
     rng = _rng(seed, "robot-rig")
-    left = random_camera(rng, size, hfov_deg=(68.0, 72.0), name="left")
-    right = random_camera(rng, size, hfov_deg=(68.0, 72.0), name="right")
+    level = "mild" if lens == "radtan" else lens
+    left = random_camera(rng, size, hfov_deg=ROBOT_HFOV_DEG[lens], distortion=level)
+    right = random_camera(rng, size, hfov_deg=ROBOT_HFOV_DEG[lens], distortion=level)
     R_l, t_l = look_at(np.array([-800.0, 0.0, 650.0]), np.array([0.0, 0.0, 150.0]), up=np.array([0.0, 0.0, 1.0]))
     R_rl = rotation_about(rng.normal(size=3), np.radians(rng.uniform(0.1, 0.5)))
     T_rl = -R_rl @ np.array([baseline_mm, 0.0, 0.0]) + rng.normal(0, 0.3, size=3)
@@ -441,7 +449,7 @@ def robot_pose_world(time_s: float, phase: np.ndarray) -> tuple[np.ndarray, np.n
 def robot_sequence(seed: SeedLike, n_frames: int | None = None, *, fps: float = 30.0, size: tuple[int, int] = (1280, 800),
                    photometric: Photometric | str = "clean", supersampling: int = 8,
                    border_px: float = 4.0, exposure_ms: float = 0.0,
-                   exposure_samples: int = 5) -> Iterator[RobotFrame]:
+                   exposure_samples: int = 5, lens: str = "radtan") -> Iterator[RobotFrame]:
     """Frames of a stereo rig watching the robot (endless when ``n_frames`` is None; nothing is kept).
 
     The room (clutter, rig, lighting) is fixed for the whole sequence; the robot moves smoothly at
@@ -450,7 +458,7 @@ def robot_sequence(seed: SeedLike, n_frames: int | None = None, *, fps: float = 
     exposure, and the truth (stamp_ns, T_rig_robot, corners) is the mid-exposure one.
     """
     rng = _rng(seed, "robot")
-    rig = robot_rig(seed, size)
+    rig = robot_rig(seed, size, lens=lens)
     tgt = robot_target()
     phase = rng.uniform(0, 2 * np.pi, size=5)
     bg_l, _ = clutter_background(rng, size, distractors=["text", "dots"])
