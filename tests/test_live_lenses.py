@@ -6,12 +6,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from live_fixtures import free_endpoint, render_robot, write_config
 from scipy.spatial.transform import Rotation
+from test_stream import Subscriber, run_in_thread
 
 from edgecal.calibration.io import load_rig
 from edgecal.stream import LiveLoop, load_live_config
-from live_fixtures import free_endpoint, render_robot, write_config
-from test_stream import Subscriber, run_in_thread
 
 N_FRAMES = 4
 
