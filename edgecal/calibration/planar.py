@@ -1,6 +1,6 @@
 """Planar multi-view calibration (mono and stereo) from many images of one flat board.
 
-OpenCV starts the pinhole lenses (calibrateCamera, stereoCalibrate; radtan and rational); the fisheye
+OpenCV starts the pinhole lenses (calibrateCamera per camera; radtan and rational); the fisheye
 lens starts from a per-view pose on points undistorted with a guessed equidistant focal length (the
 guess that fits best), because cv2.fisheye.calibrate fails on boards near the image rim (its
 InitExtrinsics assertion) or diverges. edgecal checks that the views cover the image, rejects views that
@@ -208,24 +208,13 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
     cameras = [pc[0] for pc in per_cam]
     view_poses = per_cam[0][1]
     rigs: list[RigidTransform] = []
-    if stereo and cameras[0].lens == "fisheye":
-        # the rig pose from each view's two board poses; the median is robust to a poorly posed view
+    if stereo:
+        # The rig pose from each view's two board poses; the median is robust to a poorly posed view. (Not
+        # cv2.stereoCalibrate: its dense Jacobian grows with the cube of the views - 300 pairs take minutes -
+        # and the joint refinement below finds the optimum from this start.)
         rel = [relative_pose(a, b) for a, b in zip(per_cam[0][1], per_cam[1][1])]
         rigs = [RigidTransform(np.median([np.ravel(r.rvec) for r in rel], axis=0),
                                np.median([np.ravel(r.tvec) for r in rel], axis=0))]
-    elif stereo:
-        flags = opencv_flags(options.distortion)
-        obj = [_board_points(v) for v in cams_views[0]]
-        img_l = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in cams_views[0]]
-        img_r = [v.image_px.astype(np.float32).reshape(-1, 1, 2) for v in cams_views[1]]
-        out = cv2.stereoCalibrate(obj, img_l, img_r, cameras[0].camera_matrix, cameras[0].dist_coeffs,
-                                  cameras[1].camera_matrix, cameras[1].dist_coeffs, tuple(image_size),
-                                  flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)
-        _, k1, d1, k2, d2, r, t = out[:7]
-        cameras = [CameraModel.from_opencv(k, np.ravel(d)[:8], image_size, cameras[0].lens)
-                   for k, d in ((k1, d1), (k2, d2))]
-        rigs = [RigidTransform.from_rt(r, np.ravel(t))]
-        notes.append(f"OpenCV stereoCalibrate RMS {out[0]:.3f} px")
     corners = cams_views
     res = refine(observations_for(corners, [names[i] for i in index]), cameras, view_poses, rigs, options)
     cal = calibration_from_result("planar-stereo" if stereo else "planar-mono", image_size, corners, res)

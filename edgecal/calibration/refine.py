@@ -37,6 +37,8 @@ POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
 # Relative tolerances of least_squares: far below the 1e-4 relative uncertainty of a good calibration.
 _TOL = 1e-10
 _MAX_NFEV = 200
+# Up to this many Jacobian entries (8 bytes each: 32 MB) the solver works on the dense Jacobian.
+_DENSE_JACOBIAN_ENTRIES = 4_000_000
 
 
 @dataclass(frozen=True)
@@ -236,9 +238,16 @@ class _Problem:
 
     def solve(self, x0: np.ndarray, huber_px: float | None) -> np.ndarray:
         """Minimise the (Huber-robust when ``huber_px``) sum of squared residuals from ``x0``."""
-        sol = least_squares(lambda p: self.evaluate(p)[0], x0, jac=lambda p: self.evaluate(p)[1], method="trf",
+        # Small problems: the exact trust-region step on the dense Jacobian (a few iterations). Large ones keep
+        # the Jacobian sparse and solve each step by LSMR, to a tolerance tight enough that the outer iteration
+        # converges as fast (scipy's default 1e-8 leaves steps so inexact that 200 evaluations do not suffice).
+        dense = self.n_residuals * len(x0) <= _DENSE_JACOBIAN_ENTRIES
+        jac = (lambda p: self.evaluate(p)[1].toarray()) if dense else (lambda p: self.evaluate(p)[1])
+        kw: dict = {"tr_solver": "exact"} if dense else {"tr_solver": "lsmr", "tr_options": {"atol": 1e-12,
+                                                                                              "btol": 1e-12}}
+        sol = least_squares(lambda p: self.evaluate(p)[0], x0, jac=jac, method="trf",
                             loss="huber" if huber_px else "linear", f_scale=huber_px or 1.0, x_scale="jac",
-                            ftol=_TOL, xtol=_TOL, gtol=_TOL, max_nfev=_MAX_NFEV)
+                            ftol=_TOL, xtol=_TOL, gtol=_TOL, max_nfev=_MAX_NFEV, **kw)
         return sol.x
 
 
