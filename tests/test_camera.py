@@ -153,3 +153,10 @@ def test_stereo_rig() -> None:
     rig = StereoRig(_camera("fisheye"), _camera("fisheye"), np.eye(3), [-0.075, 0.0, 0.001])
     assert rig.baseline_m == pytest.approx(np.hypot(0.075, 0.001))
     assert rig.image_size == SIZE
+
+
+def test_triangulating_a_pixel_without_a_ray_gives_nan_not_an_error() -> None:
+    from edgecal.geometry import triangulate_rays
+    v = np.array([[0.0, 0.0, 1.0], [np.nan, np.nan, np.nan]])
+    X = triangulate_rays(v, v + [[0.1, 0, 0], [0, 0, 0]], np.eye(3), [-0.1, 0, 0])
+    assert np.all(np.isfinite(X[0])) and np.all(np.isnan(X[1]))
