@@ -577,9 +577,11 @@ def urban_fisheye() -> dict | None:
         rms, k, *_ = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
         out["opencv"][label] = {"rms_px": float(rms), "fx": float(k[0, 0])}
     try:
-        rms, k, *_ = cv2.fisheye.calibrate([o.reshape(-1, 1, 3).astype(np.float64) for o in obj],
-                                           [i.astype(np.float64) for i in img], size, None, None,
-                                           flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW)
+        # (1, N, 3) / (1, N, 2) float64 and a 4x1 D: the layout cv2.fisheye.calibrate accepts in OpenCV 5
+        rms, k, *_ = cv2.fisheye.calibrate([o.reshape(1, -1, 3).astype(np.float64) for o in obj],
+                                           [i.reshape(1, -1, 2).astype(np.float64) for i in img], size, np.eye(3),
+                                           np.zeros((4, 1)), flags=cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW,
+                                           criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10))
         out["opencv"]["fisheye"] = {"rms_px": float(rms), "fx": float(k[0, 0])}
     except cv2.error as exc:
         out["opencv"]["fisheye"] = {"error": str(exc).strip().splitlines()[-1][:120]}
