@@ -157,3 +157,23 @@ def test_small_squares_opencv_cannot_measure_are_not_called_blurred():
     assert len(cs) == 54 and square_px(cs) < 16
     width = edge_width_px(frame.left.image, cs, target)
     assert is_sharp(width, square_px(cs)), width
+
+
+def test_box_collect_keeps_the_first_still_view_of_every_face_and_calibrates(tmp_path, capsys):
+    """A box's faces are strongly foreshortened: their sharp edges used to measure as blurred (3.8 px)."""
+    from edgecal.config import packaged_config_path
+    from edgecal.synth.scenes import box_stereo
+    view = box_stereo(1, size=(800, 600), photometric="clean", supersampling=6)
+    for sub in ("left", "right"):
+        (tmp_path / "session" / sub).mkdir(parents=True)
+    for i in range(3):  # the box held still for three frames
+        cv2.imwrite(str(tmp_path / "session" / "left" / f"{i}.png"), view.left.image)
+        cv2.imwrite(str(tmp_path / "session" / "right" / f"{i}.png"), view.right.image)
+    box = str(packaged_config_path("targets/box-100mm.yaml"))
+    rc = main(["collect", f"replay:{tmp_path / 'session'}?pace=fast", "--target", box, "--out",
+               str(tmp_path / "views"), "--calibrate"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "kept 1 of 2 frames (1 moving) into" in cap.err and "stopped: the box view was kept" in cap.err
+    assert f"edgecal calibrate --target {box} --left {tmp_path / 'views'}" in cap.out
+    assert "3-D reconstruction error" in cap.out and (tmp_path / "views" / "rig.yaml").is_file()

@@ -28,9 +28,9 @@ MEASURES = ("X", "Y", "size", "skew")
 WANTED_SPREAD = np.array([0.7, 0.7, 0.4, 0.5])  # ROS camera_calibration's param_ranges
 MIN_DISTANCE = 0.2        # L1 distance of the measures below which a view adds nothing (ROS)
 STILL_PX = 1.0            # corners moved less than this since the previous frame: the board is still
-# Blur: OpenCV advises edge widths "below ~3 px" (10-90 % rise). A sharp board tilted 45 deg measures up to
-# ~3.2 px (foreshortened profiles), a Gaussian blur of sigma 1 px 3.4 px, of 1.5 px 4.3 px, 15 px of motion
-# 10+ px (renders, edgecal.synth.handheld). Big squares may exceed it while still sharp: 8 % of a square.
+# Blur: OpenCV advises edge widths "below ~3 px" (10-90 % rise). On renders (edgecal.synth.handheld) a sharp
+# board measures ~2 px (after the shear correction), a Gaussian blur of sigma 1 px 3.4 px, of 1.5 px 4.3 px,
+# 15 px of motion 10+ px. Big squares may exceed it while still sharp: 8 % of a square.
 MAX_EDGE_WIDTH_PX = 3.5
 EDGE_WIDTH_PER_SQUARE = 0.08
 NO_MEASUREMENT = 9999.0   # what estimateChessboardSharpness returns when it has no profile to measure
@@ -97,7 +97,7 @@ def board_found(cs: CornerSet, target: Target) -> bool:
 
 def edge_width_px(grey: np.ndarray, cs: CornerSet, target: Target) -> float:
     """Black-to-white transition width (px) of the boards seen whole, in the blurrier edge direction
-    (cv2.estimateChessboardSharpness).
+    (cv2.estimateChessboardSharpness), corrected for the board's shear in the image (_shear_sine).
 
     A blurred or moving board has wide edges. NaN when no board is seen whole (nothing to measure).
     """
@@ -107,14 +107,28 @@ def edge_width_px(grey: np.ndarray, cs: CornerSet, target: Target) -> float:
         if len(index) != board.n_corners:
             continue
         order = [index[(c, r)] for r in range(board.rows) for c in range(board.cols)]
-        pts = cs.image_px[order].astype(np.float32).reshape(-1, 1, 2)
+        grid = cs.image_px[order].reshape(board.rows, board.cols, 2)
+        pts = grid.astype(np.float32).reshape(-1, 1, 2)
+        shear = _shear_sine(grid)
         # both edge directions: motion blur widens only the edges across the motion
         for vertical in (False, True):
             value = cv2.estimateChessboardSharpness(grey, (board.cols, board.rows), pts, vertical=vertical)[0][0]
             # OpenCV answers 9999 when it cannot measure (small squares): no measurement, not a blur
             if np.isfinite(value) and 0 < value < NO_MEASUREMENT:
-                widths.append(float(value))
+                widths.append(float(value) * shear)
     return float(np.max(widths)) if widths else math.nan
+
+
+def _shear_sine(grid: np.ndarray) -> float:
+    """sin of the angle between a board's column and row directions in the image ((rows, cols, 2) corners).
+
+    OpenCV measures each edge on the line from a cell's centre to its neighbour's, which crosses the edges
+    of a sheared (strongly tilted) board obliquely: the measured width grows by 1 / sin(angle). On rendered
+    sharp box faces 3.76 px at 37 deg, 2.97 px at 47 deg, 2.30 px at 62 deg; times the sine, 2.0-2.3 px.
+    """
+    u = np.mean(grid[:, 1:] - grid[:, :-1], axis=(0, 1))
+    v = np.mean(grid[1:, :] - grid[:-1, :], axis=(0, 1))
+    return float(min(1.0, abs(_cross(u, v)) / max(float(np.linalg.norm(u) * np.linalg.norm(v)), 1e-12)))
 
 
 def square_px(cs: CornerSet) -> float:
