@@ -388,3 +388,37 @@ def test_chess_filter_keeps_board_corners_and_drops_noise() -> None:
     thr = chess_thresholds(CHESS_RADII_PX, estimate_noise_sigma(noise_img), sigma, 0.9999, 6.0)
     pts = np.stack(np.meshgrid(np.arange(10, 310, 3), np.arange(10, 230, 3)), axis=-1).reshape(-1, 2).astype(float)
     assert chess_filter(smooth, pts, rings, thr).mean() < 0.01
+
+
+def test_hole_prediction_matches_per_hole_homographies() -> None:
+    """The batched local homographies of grid completion agree with cv2.findHomography hole by hole."""
+    import cv2
+
+    from edgecal.detection.completion import predict_holes
+
+    rng = np.random.default_rng(2)
+    h_true = np.array([[30.0, 4.0, 100.0], [-3.0, 28.0, 80.0], [0.002, -0.001, 1.0]])
+    grid = {}
+    for u in range(9):
+        for v in range(6):
+            q = h_true @ np.array([u, v, 1.0])
+            # a gentle radial bend, so that local and global homographies differ
+            xy = q[:2] / q[2]
+            xy = xy + 1e-6 * np.sum((xy - 250.0) ** 2) * (xy - 250.0)
+            grid[(u, v)] = xy + rng.normal(0, 0.02, 2)
+    holes = [(0, 0), (4, 3), (8, 5), (5, 0)]
+    for hole in holes:
+        del grid[hole]
+    del grid[(1, 0)]  # (0, 0) then has too few neighbours in its ring and needs the 5x5 patch
+    del grid[(1, 1)]
+    preds, keys, spacing = predict_holes(grid, holes)
+    assert keys == holes
+    for (u, v), p, sp in zip(keys, preds, spacing):
+        for reach in (1, 2):
+            near = [(a, b) for (a, b) in grid if abs(a - u) <= reach and abs(b - v) <= reach]
+            if len(near) >= 4 and len({a for a, _ in near}) > 1 and len({b for _, b in near}) > 1:
+                break
+        h, _ = cv2.findHomography(np.array(near, float), np.array([grid[k] for k in near]), 0)
+        q = h @ np.array([u, v, 1.0])
+        assert np.linalg.norm(p - q[:2] / q[2]) < 0.05
+        assert 20.0 < sp < 40.0

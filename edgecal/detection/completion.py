@@ -17,7 +17,7 @@ import numpy as np
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M_SIGN_FRAC, probe_candidates,
                                      probe_quality, probe_radii)
-from edgecal.detection.subpixel import refine_corners
+from edgecal.detection.subpixel import FINAL_CRITERIA, SEARCH_CRITERIA, refine_corners
 
 # Where the squares beyond a grid line are sampled, as fractions of one grid step outwards (0.5 = their
 # centre). The outermost squares of many printed boards are cut narrower than the others, so the centre
@@ -25,37 +25,82 @@ from edgecal.detection.subpixel import refine_corners
 BEYOND_STEP_FRACTIONS = (0.2, 0.35, 0.5)
 
 
-def _local_homography(grid: dict[tuple[int, int], np.ndarray], u_lo: int, u_hi: int, v_lo: int,
-                      v_hi: int) -> np.ndarray | None:
-    """Homography label -> image fitted to the corners with labels in [u_lo, u_hi] x [v_lo, v_hi]."""
-    src, dst = [], []
-    for (a, b), xy in grid.items():
-        if u_lo <= a <= u_hi and v_lo <= b <= v_hi:
-            src.append((a, b))
-            dst.append(xy)
-    if len(src) < 4:
-        return None
-    src_a = np.asarray(src, np.float64)
-    if len(np.unique(src_a[:, 0])) < 2 or len(np.unique(src_a[:, 1])) < 2:
-        return None
-    h, _ = cv2.findHomography(src_a, np.asarray(dst, np.float64), 0)
-    return h
+def _homographies(src: np.ndarray, dst: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Least-squares homographies label -> image for a batch of point sets, by one batched SVD.
+
+    src (B, N, 2) labels relative to the predicted point, dst (B, N, 2) pixels, valid (B, N) bool; each
+    set is normalised (centroid, mean distance) for conditioning, as Hartley's DLT does. Returns (B, 3, 3).
+    """
+    w = valid.astype(np.float64)[..., None]
+    n = np.maximum(w.sum(axis=1), 1.0)
+    mean = (dst * w).sum(axis=1) / n
+    scale = np.sqrt(2.0) / np.maximum((np.linalg.norm(dst - mean[:, None], axis=2) * w[..., 0]).sum(axis=1)
+                                      / n[:, 0], 1e-9)
+    d = (dst - mean[:, None]) * scale[:, None, None]
+    x, y = src[..., 0], src[..., 1]
+    one, zero = np.ones_like(x), np.zeros_like(x)
+    # two rows per correspondence; an invalid one contributes zero rows (no effect on the null space)
+    r1 = np.stack([x, y, one, zero, zero, zero, -d[..., 0] * x, -d[..., 0] * y, -d[..., 0]], axis=2)
+    r2 = np.stack([zero, zero, zero, x, y, one, -d[..., 1] * x, -d[..., 1] * y, -d[..., 1]], axis=2)
+    a = np.concatenate([r1, r2], axis=1) * np.concatenate([w, w], axis=1)
+    h = np.linalg.svd(a)[2][:, -1].reshape(-1, 3, 3)
+    # undo the normalisation: H = T^-1 Hn
+    t_inv = np.zeros_like(h)
+    t_inv[:, 0, 0] = t_inv[:, 1, 1] = 1.0 / scale
+    t_inv[:, 0, 2], t_inv[:, 1, 2] = mean[:, 0], mean[:, 1]
+    t_inv[:, 2, 2] = 1.0
+    return t_inv @ h
 
 
-def _apply(h: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    p = np.c_[labels, np.ones(len(labels))] @ h.T
-    with np.errstate(divide="ignore", invalid="ignore"):  # a point on the horizon: inf, rejected later
-        return p[:, :2] / p[:, 2:3]
-
-
-def _predict(h: np.ndarray, labels: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
-    """Image positions of ``labels`` and the distance to the nearest neighbouring corner there, pixels."""
-    lab = np.asarray(labels, np.float64)
-    p = _apply(h, lab)
-    # the nearest of the eight neighbours: on a slanted board a diagonal one can be the closest
-    steps = [np.linalg.norm(_apply(h, lab + d) - p, axis=1)
-             for d in ((1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, -1.0))]
-    return p, np.min(steps, axis=0)
+def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int, int]]
+                  ) -> tuple[list[np.ndarray], list[tuple[int, int]], list[float]]:
+    """Where the grid's missing labels ``holes`` lie: each from a homography of its own neighbourhood
+    (lens distortion is local), the nearest ring of 8 first, the 5x5 one when that ring holds fewer than 4
+    corners or only one row or column. All holes in one batched fit. Returns (points, their labels,
+    nearest-corner distances there); holes with no usable neighbourhood or on a homography's horizon are
+    left out."""
+    if not holes:
+        return [], [], []
+    hl = np.asarray(holes, dtype=np.int64)
+    keys = np.array(list(grid.keys()), dtype=np.int64)
+    lo = keys.min(axis=0) - 2
+    span = keys.max(axis=0) - lo + 3
+    dense = np.full((span[0], span[1], 2), np.nan)
+    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = np.array(list(grid.values()), dtype=np.float64)
+    out_p = np.full((len(hl), 2), np.nan)
+    out_s = np.full(len(hl), np.nan)
+    todo = np.ones(len(hl), dtype=bool)
+    for reach in (1, 2):
+        du, dv = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
+        off = np.stack([du.ravel(), dv.ravel()], axis=1)
+        off = off[(off != 0).any(axis=1)]
+        idx = np.nonzero(todo)[0]
+        if len(idx) == 0:
+            break
+        lab = hl[idx, None, :] + off[None]  # (B, N, 2)
+        iu, iv = lab[..., 0] - lo[0], lab[..., 1] - lo[1]
+        inside = (iu >= 0) & (iv >= 0) & (iu < span[0]) & (iv < span[1])
+        dst = np.where(inside[..., None], dense[np.clip(iu, 0, span[0] - 1), np.clip(iv, 0, span[1] - 1)], np.nan)
+        valid = np.isfinite(dst).all(axis=2)
+        src = np.broadcast_to(off[None].astype(np.float64), lab.shape)
+        # at least two distinct labels along each axis (not a single row or column)
+        spread = (np.where(valid[..., None], src, np.inf).min(axis=1)
+                  < np.where(valid[..., None], src, -np.inf).max(axis=1)).all(axis=1)
+        usable = (valid.sum(axis=1) >= 4) & spread
+        if not usable.any():
+            continue
+        b = np.nonzero(usable)[0]
+        h = _homographies(src[b], np.nan_to_num(dst[b]), valid[b])
+        probe = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]])
+        q = np.einsum("bij,kj->bki", h, np.c_[probe, np.ones(len(probe))])
+        with np.errstate(divide="ignore", invalid="ignore"):  # a point on the horizon: inf, left out
+            q = q[..., :2] / q[..., 2:3]
+        out_p[idx[b]] = q[:, 0]
+        out_s[idx[b]] = np.linalg.norm(q[:, 1:] - q[:, :1], axis=2).min(axis=1)
+        todo[idx[b]] = False
+    ok = np.isfinite(out_p).all(axis=1) & np.isfinite(out_s)
+    return ([out_p[i] for i in np.nonzero(ok)[0]], [holes[i] for i in np.nonzero(ok)[0]],
+            [float(out_s[i]) for i in np.nonzero(ok)[0]])
 
 
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
@@ -154,7 +199,8 @@ def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray
 
 def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray,
                        spacing: np.ndarray, params: DetectorParams, pinned: np.ndarray,
-                       accepted: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       accepted: np.ndarray | None = None, criteria: tuple = FINAL_CRITERIA
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refine predicted corners and keep those the probe confirms near their prediction.
 
     Returns (refined (M, 2), good (M,) bool, quality (M,) as probe_quality). A point the probe already
@@ -174,7 +220,7 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     inside = ((preds[:, 0] > 2) & (preds[:, 1] > 2) & (preds[:, 0] < w - 3) & (preds[:, 1] < h - 3))
     refined = preds.copy()
     if inside.any():
-        refined[inside] = refine_corners(smooth, preds[inside], spacing[inside])
+        refined[inside] = refine_corners(smooth, preds[inside], spacing[inside], criteria=criteria)
     radii = probe_radii(spacing, params)
     ok, _dirs, meas = probe_candidates(
         gx, gy, smooth, np.ascontiguousarray(refined), np.ascontiguousarray(radii), params.probe_angles,
@@ -225,19 +271,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         added = False
         # Holes: each from a homography of its own neighbourhood (lens distortion is local).
         holes = [(u, v) for u in range(u0, u1 + 1) for v in range(v0, v1 + 1) if (u, v) not in grid]
-        preds, keys, spac = [], [], []
-        for (u, v) in holes:
-            # the nearest ring of neighbours first: under strong lens distortion a wider patch is not planar
-            h = _local_homography(grid, u - 1, u + 1, v - 1, v + 1)
-            if h is None:
-                h = _local_homography(grid, u - 2, u + 2, v - 2, v + 2)
-            if h is not None:
-                p, sp = _predict(h, [(u, v)])
-                if not (np.isfinite(p).all() and np.isfinite(sp).all()):
-                    continue  # on the horizon of the local homography: no prediction
-                preds.append(p[0])
-                keys.append((u, v))
-                spac.append(sp[0])
+        preds, keys, spac = predict_holes(grid, holes)
         # Sides: a whole new row or column, each point extrapolated along its own grid line.
         sides = []
         if u1 - u0 + 1 < max_dim:
@@ -258,8 +292,9 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         if not keys:
             break
         n_holes = groups[0][0]
+        # the grid's corners get their final refinement once the board is known (SEARCH_CRITERIA here)
         refined, good, _quality = verify_predictions(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
-                                np.arange(len(keys)) < n_holes, accepted)
+                                                     np.arange(len(keys)) < n_holes, accepted, SEARCH_CRITERIA)
         start = 0
         for end, labels, outward in groups:
             sel = range(start, end)

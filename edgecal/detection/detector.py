@@ -206,9 +206,12 @@ def _search(image: np.ndarray, target: Target, params: DetectorParams | None) ->
     _boards_from_grids(level, seeds, target, p, debug)
     if _all_boards_found(debug.detections, target):
         return debug, level
-    full, grids = _find_grids(level, p)
+    # The boards found so far are not searched for again: their areas are left out of the full search.
+    full, grids = _find_grids(level, p, exclude=[d.corners for d in debug.detections])
+    full.detections = list(debug.detections)
+    full.notes = list(debug.notes)
     _boards_from_grids(level, grids, target, p, full)
-    return (full if len(full.detections) >= len(debug.detections) else debug), level
+    return full, level
 
 
 def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorParams) -> DetectionDebug | None:
@@ -236,13 +239,35 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
                           half.detections, half.notes)
 
 
-def _find_grids(level: _Level, p: DetectorParams) -> tuple[DetectionDebug, list[Grid]]:
-    """Candidates, probe, sub-pixel and grouping on one level: the accepted points and their raw grids."""
+def _outside_boards(pts: np.ndarray, boards: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """Which points (M, 2) of an image of ``shape`` lie outside every board's area: the convex hull of its
+    corners grown by a quarter square (room for the corners' snapping), as one mask. Not more: another
+    board can start just beyond the margin (the faces of a box meet there)."""
+    mask = np.zeros(shape, np.uint8)
+    for corners in boards:
+        hull = cv2.convexHull(corners.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+        centre = hull.mean(axis=0)
+        grow = 0.25 * float(np.median(nearest_spacing(corners)))
+        d = np.linalg.norm(hull - centre, axis=1, keepdims=True)
+        grown = centre + (hull - centre) * (d + grow) / np.maximum(d, 1e-9)
+        cv2.fillConvexPoly(mask, np.rint(grown).astype(np.int32), 1)
+    xy = np.clip(np.rint(pts).astype(np.int64), 0, [shape[1] - 1, shape[0] - 1])
+    return mask[xy[:, 1], xy[:, 0]] == 0
+
+
+def _find_grids(level: _Level, p: DetectorParams, exclude: list[np.ndarray] | None = None
+                ) -> tuple[DetectionDebug, list[Grid]]:
+    """Candidates, probe, sub-pixel and grouping on one level: the accepted points and their raw grids.
+
+    ``exclude``: corners (N, 2) of boards already found; candidates within their areas are dropped.
+    """
     smooth, gx, gy = level.smooth, level.gx, level.gy
     floor = noise_response_floor(level.noise_sigma, level.smoothing_sigma, p.candidate_block_size,
                                  p.candidate_noise_quantile)
     cands, _resp = min_eigen_candidates(gx, gy, p.candidate_block_size, p.candidate_quality, p.max_candidates,
                                         floor)
+    if exclude:
+        cands = cands[_outside_boards(cands, exclude, smooth.shape)]
     debug = DetectionDebug(cands, np.zeros((0, 2)), np.zeros((0, 4)), np.zeros(0))
     pts = _first_pass(level, cands, p)
     if len(pts) < 4:
