@@ -59,6 +59,9 @@ STAGES = (
     ("edgecal.detection.completion", "refine_corners", "subpixel"),
     ("edgecal.detection.detector", "assign_ids", "ids+checks"),
     ("edgecal.detection.detector", "grid_is_regular", "ids+checks"),
+    ("edgecal.detection.detector", "_corner_quality", "quality"),
+    ("edgecal.detection.detector", "corner_covariance", "covariance"),
+    ("edgecal.detection.detector", "_outside_boards", "exclusion"),
 )
 
 
