@@ -422,3 +422,25 @@ def test_hole_prediction_matches_per_hole_homographies() -> None:
         q = h @ np.array([u, v, 1.0])
         assert np.linalg.norm(p - q[:2] / q[2]) < 0.05
         assert 20.0 < sp < 40.0
+
+
+def _bloomed(view) -> np.ndarray:
+    """An overexposed copy of a render whose white squares bleed a pixel into the black ones (as on a real
+    sensor), so that neighbouring black squares no longer touch at their corners."""
+    import cv2
+
+    img = view.image.astype(np.float32)
+    img = np.clip((img - img.min()) / (np.percentile(img, 60) - img.min()) * 255 * 1.3, 0, 255)
+    return cv2.dilate(img, np.ones((3, 3), np.uint8)).astype(np.uint8)
+
+
+def test_an_overexposed_board_with_bloomed_corners_is_found() -> None:
+    for seed in (1, 2, 5):  # views where the black squares come apart at the corners
+        view = planar_view(seed, size=(640, 480), square_px=(25.0, 40.0), photometric="clean",
+                           background="uniform")
+        debug = edgecal.detect_debug(_bloomed(view), planar_target(9, 6))
+        truth = ground_truth_from_mapping(view.truth, "bloomed")
+        score = score_image([FoundGrid(d.corners, d.ids, d.grid) for d in debug.detections], truth, "grid")
+        assert score.n_found == 1 and score.false_boards == 0, seed
+        assert corner_rms(score.found_errors()) < 0.5
+        assert any("overexposed" in n for n in debug.notes)

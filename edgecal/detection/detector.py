@@ -39,6 +39,8 @@ MIN_HALF_SPACING_PX = 5.0
 GRID_GROWTH_MAX_DIM = 40
 # ChESS rings (px) of the candidate filter: 3 px for the smallest squares, 5 px past a blurred corner's blur.
 CHESS_RADII_PX = (3.0, 5.0)
+# Grey level from which a pixel counts as saturated (8-bit; JPEG ringing keeps some just below 255).
+SATURATED_LEVEL = 250
 _CHESS_RINGS = np.array([np.stack(chess_ring(r)) for r in CHESS_RADII_PX], dtype=np.int64)
 
 
@@ -145,9 +147,40 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
     Every detection carries its corners' covariances (edgecal.detection.corner_covariance), computed on
     the full-resolution image in one call over all boards.
     """
-    debug, level = _search(image, target, params)
+    p = params or DEFAULT_PARAMS
+    grey = as_grey(image)
+    debug, level = _search(grey, target, p)
     add_covariances(debug.detections, level)
+    if not _all_boards_found(debug.detections, target) and _blooming(grey, p):
+        _add_bloomed_boards(grey, target, p, debug)
     return debug
+
+
+def _blooming(grey: np.ndarray, p: DetectorParams) -> bool:
+    """Whether the image is overexposed enough for white squares to bloom over the black ones' corners
+    (a share ``bloom_saturated_fraction`` of the pixels at the top of the range)."""
+    step = max(1, min(grey.shape) // 200)  # a sparse sample is plenty for a share of pixels
+    return bool((grey[::step, ::step] >= SATURATED_LEVEL).mean() >= p.bloom_saturated_fraction)
+
+
+def _add_bloomed_boards(grey: np.ndarray, target: Target, p: DetectorParams, debug: DetectionDebug) -> None:
+    """Search again in the image eroded by 3x3 and add the boards found there that were missing.
+
+    In an overexposed image white bleeds into black, so two black squares no longer meet at a corner but
+    face each other across a white gap: there is no X-junction left for the probe. A grey-level erosion
+    (3x3 minimum) closes gaps of up to two pixels and, being symmetric, leaves the saddle of an X-junction
+    where it was; the corners are refined (and their covariances taken) on the eroded image.
+    """
+    eroded = cv2.erode(grey, np.ones((3, 3), np.uint8))
+    found = {d.board for d in debug.detections}
+    extra, level = _search(eroded, target, p)
+    new = [d for d in extra.detections if d.board not in found]
+    if not new:
+        return
+    add_covariances(new, level)
+    debug.detections.extend(new)
+    _number_copies(debug.detections)
+    debug.notes.append("overexposed: boards found in the image eroded by 3x3 (white bloomed over the corners)")
 
 
 def add_covariances(detections: list[Detection], level: "_Level") -> None:
@@ -164,7 +197,7 @@ def add_covariances(detections: list[Detection], level: "_Level") -> None:
         start += len(d.corners)
 
 
-def _search(image: np.ndarray, target: Target, params: DetectorParams | None) -> tuple[DetectionDebug, "_Level"]:
+def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, "_Level"]:
     """The search of detect_debug; also returns the full-resolution level the corners were refined on.
 
     Large images are searched at half resolution first (a quarter of the pixel work). Boards found there are
@@ -172,8 +205,6 @@ def _search(image: np.ndarray, target: Target, params: DetectorParams | None) ->
     resolution. Only when a board is still missing does the full-resolution search run (the smallest
     squares need it).
     """
-    p = params or DEFAULT_PARAMS
-    grey = as_grey(image)
     if min(grey.shape) < p.pyramid_min_size_px:
         level = _Level(grey)
         debug, grids = _find_grids(level, p)

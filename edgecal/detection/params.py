@@ -35,6 +35,7 @@ class DetectorParams:
     max_candidates: int = 6000
     min_grid_corners: int = 6
     pyramid_min_size_px: int = 400
+    bloom_saturated_fraction: float = 0.10
 
 
 DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"
@@ -42,7 +43,8 @@ DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"
 _INT_FIELDS = {"probe_angles", "candidate_block_size", "max_candidates", "min_grid_corners",
                "pyramid_min_size_px"}
 _FRACTION_FIELDS = {"sign_fraction", "cross_ratio_tolerance", "candidate_quality", "candidate_noise_quantile",
-                    "candidate_chess_quantile"}
+                    "candidate_chess_quantile",
+                    "bloom_saturated_fraction"}
 
 
 def params_from_mapping(data: dict, source: str, base: DetectorParams | None = None) -> DetectorParams:
