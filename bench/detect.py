@@ -356,15 +356,15 @@ def make_calib_targets() -> Callable:
     return detect
 
 
-def make_edgecal() -> Callable:
-    """edgecal.detect(image, target) -> list[Detection]."""
-    try:
-        from edgecal import detect as edgecal_detect  # type: ignore[attr-defined]
-    except ImportError:
-        from edgecal.detection import detect as edgecal_detect  # type: ignore[attr-defined]
+def make_edgecal(refiner: str | None = None) -> Callable:
+    """edgecal.detect(image, target) -> list[Detection]; ``refiner`` overrides DetectorParams.subpixel_refiner
+    (the refiners side by side on the same images)."""
+    from edgecal import detect as edgecal_detect
+    from edgecal.detection.params import DetectorParams
+    params = DetectorParams(subpixel_refiner=refiner) if refiner else None
 
     def detect(grey: np.ndarray, target: Target) -> tuple[list[FoundGrid], int]:
-        dets = edgecal_detect(grey, target)
+        dets = edgecal_detect(grey, target, params)
         out = [FoundGrid(np.asarray(d.corners, dtype=np.float64).reshape(-1, 2),
                          np.asarray(d.ids, dtype=np.int64).reshape(-1, 2),
                          (int(d.grid[0]), int(d.grid[1])), bool(d.complete), str(d.board)) for d in dets]
@@ -385,13 +385,15 @@ class Detector:
     warmup_ms: float = float("nan")
 
 
-DETECTOR_NAMES = ("edgecal", "opencv", "opencv_sb", "libcbdetect", "checkerboard", "calib_targets")
+DETECTOR_NAMES = ("edgecal", "edgecal_csp", "opencv", "opencv_sb", "libcbdetect", "checkerboard", "calib_targets")
 
 
 def load_detectors(names: list[str]) -> list[Detector]:
     """Build the selected detectors; one that fails to import is kept with its reason and not run."""
     makers: dict[str, tuple[Callable[[], Callable], str, bool]] = {
         "edgecal": (make_edgecal, "board", True),
+        # edgecal with cornerSubPix alone as its final refiner (the default adds the saddle fit)
+        "edgecal_csp": (lambda: make_edgecal("cornersubpix"), "board", True),
         "opencv": (lambda: detect_opencv, "grid", True),
         "opencv_sb": (lambda: detect_opencv_sb, "grid", True),
         "libcbdetect": (make_libcbdetect, "grid", False),

@@ -444,3 +444,25 @@ def test_an_overexposed_board_with_bloomed_corners_is_found() -> None:
         assert score.n_found == 1 and score.false_boards == 0, seed
         assert corner_rms(score.found_errors()) < 0.5
         assert any("overexposed" in n for n in debug.notes)
+
+
+@pytest.mark.parametrize("photometric,gain", [("clean", 0.6), ("normal", 0.9)])
+def test_saddle_fit_beats_cornersubpix_alone(photometric: str, gain: float) -> None:
+    """The default final refiner (cornerSubPix, then the saddle fit) against cornerSubPix alone, same boards."""
+    errors: dict[str, list[np.ndarray]] = {"saddle": [], "cornersubpix": []}
+    for seed in range(4):
+        view = planar_view(seed, size=(640, 480), square_px=(20.0, 45.0), photometric=photometric,
+                           background="uniform")
+        for refiner in errors:
+            dets = edgecal.detect(view.image, planar_target(9, 6), DetectorParams(subpixel_refiner=refiner))
+            score = _score(view, dets)
+            assert score.n_found == 1
+            errors[refiner].append(score.found_errors())
+    rms = {k: corner_rms(np.concatenate(v)) for k, v in errors.items()}
+    assert rms["saddle"] < gain * rms["cornersubpix"], rms
+
+
+def test_refiner_choice_is_validated() -> None:
+    with pytest.raises(ConfigError, match="subpixel_refiner"):
+        params_from_mapping({"subpixel_refiner": "magic"}, "x.yaml")
+    assert params_from_mapping({"subpixel_refiner": "cornersubpix"}, "x.yaml").subpixel_refiner == "cornersubpix"

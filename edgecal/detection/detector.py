@@ -19,13 +19,13 @@ import numpy as np
 from edgecal.detection.candidates import (chess_filter, chess_ring, chess_thresholds, dedupe_in_order,
                                           estimate_noise_sigma, gradients, min_eigen_candidates,
                                           noise_response_floor, smooth_image, smoothing_sigma, snap_to_saddle)
-from edgecal.detection.completion import complete_grid, trim_false_edges
+from edgecal.detection.completion import complete_grid, predict_holes, trim_false_edges
 from edgecal.detection.corner_covariance import corner_covariance
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
-from edgecal.detection.subpixel import nearest_spacing, refine_corners
+from edgecal.detection.subpixel import nearest_spacing, refine_corners, saddle_refine
 from edgecal.detection.types import Detection, DetectionDebug
 from edgecal.images import as_grey
 from edgecal.targets import Board, Target
@@ -37,6 +37,8 @@ MIN_HALF_SPACING_PX = 5.0
 # Completion grows a grid up to this many labels per axis whatever the board's size, so that a board that is
 # part of a larger regular grid is seen as that grid (and its size said in the note), never as a sub-grid.
 GRID_GROWTH_MAX_DIM = 40
+# A final corner further than this fraction of a square from where its neighbours put it slid along an edge.
+SLID_FRACTION = 0.2
 # ChESS rings (px) of the candidate filter: 3 px for the smallest squares, 5 px past a blurred corner's blur.
 CHESS_RADII_PX = (3.0, 5.0)
 # Grey level from which a pixel counts as saturated (8-bit; JPEG ringing keeps some just below 255).
@@ -258,7 +260,7 @@ def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorP
             return None
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
         xy = refine_corners(level.smooth, 2.0 * det.corners, spacing, max_move_px=3.0)
-        det.corners = refine_corners(level.smooth, xy, spacing)
+        det.corners = _resettle_slid_corners(level.smooth, det.ids, _final_corners(level.smooth, xy, p), p)
         if not grid_is_regular(det.corners, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
@@ -368,7 +370,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
             notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
         # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
-        xy = refine_corners(smooth, xy, nearest_spacing(xy))
+        xy = _resettle_slid_corners(smooth, ids, _final_corners(smooth, xy, p), p)
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
@@ -396,6 +398,44 @@ def _number_copies(detections: list[Detection]) -> None:
         for k, i in enumerate(sorted(range(len(same)), key=lambda j: keys[j])):
             same[i].copy = k
     detections.sort(key=lambda d: (d.board, d.copy))
+
+
+def _final_corners(smooth: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
+    """A board's final corners: cornerSubPix with the window from the grid's own spacing, then (refiner
+    "saddle") the saddle fit from there."""
+    spacing = nearest_spacing(xy)
+    xy = refine_corners(smooth, xy, spacing)
+    return saddle_refine(smooth, xy, spacing) if p.subpixel_refiner == "saddle" else xy
+
+
+def _resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
+    """Corners that slid along an edge, refined again from where their neighbours put them.
+
+    On a steeply slanted board cornerSubPix is ill-conditioned along thin squares and can slide a corner
+    along one of its edges by a good part of a square; the grid checks barely see a sideways slip of an
+    outer corner. Each corner is predicted from a local homography of its neighbours (leaving it out, all
+    corners in one batch); one further than SLID_FRACTION of a square from its prediction is refined again
+    from the prediction, and the new position is kept when it agrees with the prediction better.
+    """
+    out = xy.copy()
+    index = {(int(c), int(r)): i for i, (c, r) in enumerate(ids)}
+    for _ in range(3):  # a slid corner misleads its neighbours' predictions: repeat once it is back
+        grid = {k: out[i] for k, i in index.items()}
+        preds, keys, spacing = predict_holes(grid, list(grid))
+        if not keys:
+            break
+        rows = np.array([index[k] for k in keys])
+        pred, sp = np.asarray(preds), np.asarray(spacing)
+        off = np.linalg.norm(out[rows] - pred, axis=1)
+        slid = off > np.maximum(SLID_FRACTION * sp, 1.5)
+        if not slid.any():
+            break
+        again = _final_corners(smooth, pred[slid], p)
+        better = np.linalg.norm(again - pred[slid], axis=1) < off[slid]
+        if not better.any():
+            break
+        out[rows[slid][better]] = again[better]
+    return out
 
 
 def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:

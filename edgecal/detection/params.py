@@ -6,6 +6,7 @@ from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
 from edgecal.config import ConfigReader, load_yaml_mapping
+from edgecal.detection.subpixel import REFINERS
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class DetectorParams:
     min_grid_corners: int = 6
     pyramid_min_size_px: int = 400
     bloom_saturated_fraction: float = 0.10
+    subpixel_refiner: str = "saddle"
 
 
 DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"
@@ -57,7 +59,9 @@ def params_from_mapping(data: dict, source: str, base: DetectorParams | None = N
     for name in names:
         if not r.has(name):
             continue
-        if name in _INT_FIELDS:
+        if name == "subpixel_refiner":
+            values[name] = r.string(name, choices=REFINERS)
+        elif name in _INT_FIELDS:
             values[name] = r.integer(name, minimum=1)
         elif name in _FRACTION_FIELDS:
             values[name] = r.number(name, minimum=0.0, maximum=1.0)

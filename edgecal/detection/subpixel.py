@@ -1,4 +1,5 @@
-"""Step 5: sub-pixel localisation of accepted corners.
+"""Step 5: sub-pixel localisation of accepted corners (cv2.cornerSubPix while searching; a saddle fit for
+the final corners, see saddle_refine and REFINERS).
 
 cv2.cornerSubPix (gradient orthogonality: every gradient in the window is perpendicular to the vector from
 the corner) is accurate to ~0.01 px on clean corners when its window holds only this corner's two edges,
@@ -8,8 +9,11 @@ so the window follows the local square size: half-width 0.5 x the nearest corner
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 FINAL_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 0.001)
@@ -62,3 +66,119 @@ def nearest_spacing(pts: np.ndarray) -> np.ndarray:
         return np.full(len(pts), 20.0)
     d, _ = cKDTree(pts).query(pts, k=2)
     return np.clip(d[:, 1], 4.0, 300.0)
+
+
+# The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, or followed by
+# the saddle fit (the default: more accurate on every rendered set, see saddle_refine).
+REFINERS = ("cornersubpix", "saddle")
+
+# Saddle fit: a quadratic surface fitted to the image around each corner, the corner at its saddle point.
+# The fit window (half-width 2 px, Gaussian weights sigma 2 px) holds only the corner's own blur, where the
+# intensity of an X-junction is a saddle-shaped quadratic; the patch is smoothed a little more first
+# (sigma 0.08 x the square size, 0.5..1 px) so that noise does not tilt the fit.
+_SADDLE_HALF = 2
+_SADDLE_BLUR_MAX = 3  # half-width of the extra smoothing kernel
+_SADDLE_ITERATIONS = 4
+
+
+def _saddle_fit_matrix() -> np.ndarray:
+    """Weighted least-squares pseudo-inverse (6, 25): window values -> a x^2 + b xy + c y^2 + d x + e y + f."""
+    r = np.arange(-_SADDLE_HALF, _SADDLE_HALF + 1, dtype=np.float64)
+    dx, dy = (a.ravel() for a in np.meshgrid(r, r))
+    design = np.stack([dx * dx, dx * dy, dy * dy, dx, dy, np.ones_like(dx)], axis=1)
+    w = np.exp(-(dx * dx + dy * dy) / (2.0 * _SADDLE_HALF ** 2))
+    return np.linalg.pinv(design * w[:, None]) * w[None, :]
+
+
+_SADDLE_FIT = _saddle_fit_matrix()
+
+
+@njit(cache=True, nogil=True)
+def _saddle_kernel(smooth: np.ndarray, pts: np.ndarray, sigma: np.ndarray, fit: np.ndarray, half: int,
+                   blur: int, iterations: int, max_move: float) -> np.ndarray:
+    """saddle_refine for all corners in one pass (see there); fit: (6, (2 half + 1)^2) weighted pseudo-inverse."""
+    h, w = smooth.shape
+    m = pts.shape[0]
+    out = pts.copy()
+    side = 2 * (half + blur) + 1
+    n_fit = 2 * half + 1
+    patch = np.empty((side, side))
+    rows = np.empty((side, n_fit))
+    win = np.empty(n_fit * n_fit)
+    kern = np.empty(2 * blur + 1)
+    for i in range(m):
+        total = 0.0
+        for k in range(2 * blur + 1):
+            kern[k] = math.exp(-((k - blur) ** 2) / (2.0 * sigma[i] * sigma[i]))
+            total += kern[k]
+        for k in range(2 * blur + 1):
+            kern[k] /= total
+        x = pts[i, 0]
+        y = pts[i, 1]
+        ok = True
+        for _ in range(iterations):
+            if x < half + blur + 1 or y < half + blur + 1 or x > w - half - blur - 2 or y > h - half - blur - 2:
+                ok = False
+                break
+            # the patch resampled at the estimate: one bilinear fraction for every pixel
+            x0 = int(math.floor(x))
+            y0 = int(math.floor(y))
+            fx = x - x0
+            fy = y - y0
+            r0 = half + blur
+            for a in range(side):
+                yy = y0 + a - r0
+                for b in range(side):
+                    xx = x0 + b - r0
+                    patch[a, b] = ((smooth[yy, xx] * (1.0 - fx) + smooth[yy, xx + 1] * fx) * (1.0 - fy)
+                                   + (smooth[yy + 1, xx] * (1.0 - fx) + smooth[yy + 1, xx + 1] * fx) * fy)
+            for a in range(side):
+                for b in range(n_fit):
+                    acc = 0.0
+                    for k in range(2 * blur + 1):
+                        acc += patch[a, b + k] * kern[k]
+                    rows[a, b] = acc
+            for a in range(n_fit):
+                for b in range(n_fit):
+                    acc = 0.0
+                    for k in range(2 * blur + 1):
+                        acc += rows[a + k, b] * kern[k]
+                    win[a * n_fit + b] = acc
+            c = np.zeros(5)
+            for j in range(5):
+                acc = 0.0
+                for q in range(n_fit * n_fit):
+                    acc += fit[j, q] * win[q]
+                c[j] = acc
+            det = 4.0 * c[0] * c[2] - c[1] * c[1]
+            if not det < 0.0:  # an extremum or flat: no saddle here
+                ok = False
+                break
+            sx = (c[1] * c[4] - 2.0 * c[2] * c[3]) / det
+            sy = (c[1] * c[3] - 2.0 * c[0] * c[4]) / det
+            if abs(sx) >= 1.0 or abs(sy) >= 1.0:
+                continue
+            x += sx
+            y += sy
+        if ok and math.hypot(x - pts[i, 0], y - pts[i, 1]) <= max_move:
+            out[i, 0] = x
+            out[i, 1] = y
+    return out
+
+
+def saddle_refine(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray, max_move_px: float = 1.0) -> np.ndarray:
+    """Corners (M, 2) moved to the saddle point of a quadratic fitted to the image around them.
+
+    Starts from ``pts`` (cornerSubPix's corners) and iterates on a patch resampled at the current estimate.
+    A corner whose fit is no saddle, or that would move more than ``max_move_px`` from its start, keeps its
+    start position. Measured on renders with exact truth against cornerSubPix (bench/detect.py, rendered
+    and synthetic sets): clean 0.004 instead of 0.013 px typical, 8 px squares 0.02 instead of 0.08 px,
+    noisy ones about half the error.
+    """
+    pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return pts.copy()
+    sigma = np.clip(0.08 * np.asarray(spacing, dtype=np.float64), 0.5, 1.0)
+    return _saddle_kernel(np.ascontiguousarray(smooth, np.float32), pts, np.ascontiguousarray(sigma),
+                          np.ascontiguousarray(_SADDLE_FIT[:5]), _SADDLE_HALF, _SADDLE_BLUR_MAX,
+                          _SADDLE_ITERATIONS, float(max_move_px))
