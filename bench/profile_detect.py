@@ -62,6 +62,8 @@ STAGES = (
     ("edgecal.detection.detector", "_corner_quality", "quality"),
     ("edgecal.detection.detector", "corner_covariance", "covariance"),
     ("edgecal.detection.detector", "_outside_boards", "exclusion"),
+    ("edgecal.detection.detector", "saddle_refine", "saddle"),
+    ("edgecal.detection.detector", "_resettle_slid_corners", "resettle"),
 )
 
 

@@ -400,10 +400,11 @@ def _number_copies(detections: list[Detection]) -> None:
     detections.sort(key=lambda d: (d.board, d.copy))
 
 
-def _final_corners(smooth: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
-    """A board's final corners: cornerSubPix with the window from the grid's own spacing, then (refiner
-    "saddle") the saddle fit from there."""
-    spacing = nearest_spacing(xy)
+def _final_corners(smooth: np.ndarray, xy: np.ndarray, p: DetectorParams,
+                   spacing: np.ndarray | None = None) -> np.ndarray:
+    """A board's final corners: cornerSubPix with the window from the grid's own spacing (``spacing``, or
+    the corners' nearest-neighbour distances), then (refiner "saddle") the saddle fit from there."""
+    spacing = nearest_spacing(xy) if spacing is None else spacing
     xy = refine_corners(smooth, xy, spacing)
     return saddle_refine(smooth, xy, spacing) if p.subpixel_refiner == "saddle" else xy
 
@@ -418,23 +419,41 @@ def _resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, 
     from the prediction, and the new position is kept when it agrees with the prediction better.
     """
     out = xy.copy()
+    cols, rows = int(ids[:, 0].max()) + 1, int(ids[:, 1].max()) + 1
+    if len(ids) != cols * rows or min(cols, rows) < 3:
+        return out
+    spacing = nearest_spacing(xy)
     index = {(int(c), int(r)): i for i, (c, r) in enumerate(ids)}
     for _ in range(3):  # a slid corner misleads its neighbours' predictions: repeat once it is back
+        # cheap screen first: second differences along rows and columns (ends take their neighbours')
+        dense = np.empty((rows, cols, 2))
+        dense[ids[:, 1], ids[:, 0]] = out
+        bend = np.zeros((rows, cols))
+        for axis in (0, 1):
+            g = np.moveaxis(dense, axis, 0)
+            d2 = np.linalg.norm(g[:-2] - 2.0 * g[1:-1] + g[2:], axis=-1)
+            b = np.zeros(g.shape[:2])
+            b[1:-1] = d2
+            b[0], b[-1] = d2[0], d2[-1]
+            bend = np.maximum(bend, np.moveaxis(b, 0, axis))
+        flagged = bend[ids[:, 1], ids[:, 0]] > np.maximum(SLID_FRACTION * spacing, 1.5)
+        if not flagged.any():
+            break
         grid = {k: out[i] for k, i in index.items()}
-        preds, keys, spacing = predict_holes(grid, list(grid))
+        preds, keys, _sp = predict_holes(grid, [k for k, i in index.items() if flagged[i]])
         if not keys:
             break
-        rows = np.array([index[k] for k in keys])
-        pred, sp = np.asarray(preds), np.asarray(spacing)
-        off = np.linalg.norm(out[rows] - pred, axis=1)
-        slid = off > np.maximum(SLID_FRACTION * sp, 1.5)
+        sel = np.array([index[k] for k in keys])
+        pred = np.asarray(preds)
+        off = np.linalg.norm(out[sel] - pred, axis=1)
+        slid = off > np.maximum(SLID_FRACTION * spacing[sel], 1.5)
         if not slid.any():
             break
-        again = _final_corners(smooth, pred[slid], p)
+        again = _final_corners(smooth, pred[slid], p, spacing[sel][slid])
         better = np.linalg.norm(again - pred[slid], axis=1) < off[slid]
         if not better.any():
             break
-        out[rows[slid][better]] = again[better]
+        out[sel[slid][better]] = again[better]
     return out
 
 
