@@ -37,6 +37,7 @@ from edgecal.drivers.recording import MANIFEST, load_manifest
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, InputError
 from edgecal.fileio import read_input
+from edgecal.imageheader import image_size
 from edgecal.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, image_files, read_image
 
 DEFAULT_FPS = 30.0
@@ -398,8 +399,12 @@ def replay_contents(spec: SourceSpec) -> ReplayContents:
     size = None
     if first is not None:
         try:
-            image = read_image_file(first)
-            size = (int(image.shape[1]), int(image.shape[0]))
+            # The header is enough (a config check runs on every reload); decoded only for a format whose
+            # header is not read.
+            size = image_size(read_input(first, "image file"))
+            if size is None:
+                image = read_image_file(first, spec.settings.max_pixels)
+                size = (int(image.shape[1]), int(image.shape[0]))
         except InputError:
             pass            # an unreadable frame is skipped at run time; the size stays unknown
     return ReplayContents(frames, stereo, size)
