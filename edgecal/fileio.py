@@ -9,7 +9,7 @@ files) is written all-or-nothing as far as a file system allows: every temporary
 Temporaries are unnamed (Linux ``O_TMPFILE``) wherever the file system allows, so a writer killed
 mid-write leaves nothing behind; a temporary gets a name only for the two system calls that move it onto
 an existing file, or on a file system without ``O_TMPFILE``. Named temporaries look like
-``.NAME.PID-XXXXXXXX.edgecal-tmp``; the next write into the same folder removes those whose writer is gone.
+``.NAME.PID-XXXXXXXX.edgecal-tmp``; a process's first write into a folder removes those whose writer is gone.
 
 Reads go through :func:`read_input`, which names the file and says "permission denied" when that is
 the reason (not "unreadable"): the usual mistake when a service user reads a file copied by root.
@@ -129,6 +129,17 @@ def remove_stale_temps(folder: str | Path) -> list[Path]:
         except OSError:
             pass
     return removed
+
+
+def supports_unnamed_temporaries(folder: str | Path) -> bool:
+    """Whether files written into ``folder`` start unnamed (O_TMPFILE and /proc), so a kill leaves nothing."""
+    if not os.path.isdir(_PROC_FD):
+        return False
+    try:
+        os.close(os.open(folder, os.O_TMPFILE | os.O_WRONLY | os.O_CLOEXEC, 0o600))
+    except OSError:
+        return False
+    return True
 
 
 def _process_alive(pid: int) -> bool:
