@@ -11,21 +11,49 @@ from edgecal.camera import StereoRig, undistort_points
 from edgecal.detection.types import Detection
 from edgecal.geometry import triangulate_pixels
 from edgecal.pose.predict import MIN_FACING_COS, camera_from_rig, facing_cos
-from edgecal.pose.refine import CameraView, pose_covariance, refine_pose
+from edgecal.pose.refine import CameraView, model_covariance, pose_covariance, refine_pose, whitening
 from edgecal.pose.rigid import fit_rigid, is_degenerate
 from edgecal.pose.types import Pose, PoseSettings
 from edgecal.targets import Target
 
 
+# The error the corners of one board in one camera share (estimated from edgecal.synth robot sequences;
+# see the README, "Live pose"): the light field, the blur and the perspective over a board bias its corners
+# alike, which does not average out over them as independent errors do, and a fit's residual cannot see a
+# bias the pose absorbs. Modelled as an affine error of the board's corners in the image - an offset and a
+# linear map about their centroid, in px at the corners' RMS distance from it - with sigma^2 per parameter
+# = SHARED_FLOOR_PX^2 + (SHARED_FRACTION x RMS corner sigma of the board)^2. Measured on renders (weighted
+# affine fits to the corners' true errors, less what independent errors explain): offset / linear part
+# 0.04 / 0.06 px on the hard sequence (0.2 / 0.3 of its corners' sigma), 0.010 / 0.010 px under a strong
+# light gradient, none measurable on clean renders.
+SHARED_FLOOR_PX = 0.0
+SHARED_FRACTION = 0.15
+
+
 def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[str, int, int], np.ndarray]:
-    """(board, col, row) -> pixel (2,) for every detected corner of a board the target knows."""
+    """(board, col, row) -> pixel (2,) for every usable detected corner of a board the target knows."""
     names = {b.name for b in target.boards}
     table: dict[tuple[str, int, int], np.ndarray] = {}
     for det in detections:
         if det.board not in names:
             continue
-        for (c, r), px in zip(np.asarray(det.ids).reshape(-1, 2), np.asarray(det.corners).reshape(-1, 2)):
-            table[(det.board, int(c), int(r))] = np.asarray(px, dtype=np.float64)
+        for (c, r), px, ok in zip(np.asarray(det.ids).reshape(-1, 2), np.asarray(det.corners).reshape(-1, 2),
+                                  det.usable()):
+            if ok:
+                table[(det.board, int(c), int(r))] = np.asarray(px, dtype=np.float64)
+    return table
+
+
+def corner_covariances(detections: Sequence[Detection], target: Target) -> dict[tuple[str, int, int], np.ndarray]:
+    """(board, col, row) -> the detector's 2x2 covariance (px^2) of every usable corner that has one."""
+    names = {b.name for b in target.boards}
+    table: dict[tuple[str, int, int], np.ndarray] = {}
+    for det in detections:
+        if det.board not in names or det.covariance is None:
+            continue
+        for (c, r), cov, ok in zip(np.asarray(det.ids).reshape(-1, 2), det.covariance, det.usable()):
+            if ok:
+                table[(det.board, int(c), int(r))] = cov
     return table
 
 
@@ -43,13 +71,55 @@ def robot_points_m(target: Target, keys: Sequence[tuple[str, int, int]]) -> np.n
     return out
 
 
-def _views(rig: StereoRig, target: Target, left: dict, right: dict) -> tuple[CameraView, CameraView]:
+def _covariances(keys: list, covs: dict, noise_px: float) -> np.ndarray:
+    """(N, 2, 2) covariances of the corners ``keys``: the detector's, else ``noise_px`` on both axes."""
+    fallback = np.eye(2) * noise_px ** 2
+    return np.array([covs.get(k, fallback) for k in keys]).reshape(-1, 2, 2)
+
+
+def _views(rig: StereoRig, target: Target, left: dict, right: dict, covs: tuple[dict, dict] = ({}, {}),
+           noise_px: float = 0.1) -> tuple[CameraView, CameraView]:
     kl, kr = sorted(left), sorted(right)
     vl = CameraView(rig.left, np.eye(3), np.zeros(3), robot_points_m(target, kl),
-                    np.array([left[k] for k in kl]).reshape(-1, 2))
+                    np.array([left[k] for k in kl]).reshape(-1, 2), _covariances(kl, covs[0], noise_px))
     vr = CameraView(rig.right, rig.R_right_left, rig.t_right_left_m, robot_points_m(target, kr),
-                    np.array([right[k] for k in kr]).reshape(-1, 2))
+                    np.array([right[k] for k in kr]).reshape(-1, 2), _covariances(kr, covs[1], noise_px))
     return vl, vr
+
+
+def board_shared_error(xy: np.ndarray, cov_px2: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The shared affine error of each group's corners (SHARED_FLOOR_PX, SHARED_FRACTION): its basis
+    (M, 2, 6) - offset x, y, then the linear map's four entries times the corner's offset from its group's
+    centroid over their RMS distance - and (G, 6) variances (px^2). xy (M, 2) pixels, cov_px2 (M, 2, 2) the
+    corners' covariances, groups (M,) their group."""
+    n = np.maximum(np.bincount(groups), 1)
+    centroid = np.stack([np.bincount(groups, weights=xy[:, 0]), np.bincount(groups, weights=xy[:, 1])], axis=1) / n[:, None]
+    d = xy - centroid[groups]
+    radius = np.sqrt(np.bincount(groups, weights=np.sum(d * d, axis=1)) / n)
+    q = d / np.maximum(radius, 1e-9)[groups][:, None]
+    basis = np.zeros((len(xy), 2, 6))
+    basis[:, 0, 0] = basis[:, 1, 1] = 1.0
+    basis[:, 0, 2], basis[:, 0, 3], basis[:, 1, 4], basis[:, 1, 5] = q[:, 0], q[:, 1], q[:, 0], q[:, 1]
+    per_axis = 0.5 * (cov_px2[:, 0, 0] + cov_px2[:, 1, 1])
+    mean_var = np.bincount(groups, weights=per_axis) / n
+    var = SHARED_FLOOR_PX ** 2 + SHARED_FRACTION ** 2 * mean_var
+    return basis, np.repeat(var[:, None], 6, axis=1)
+
+
+def _fit_covariance(J: np.ndarray, res: np.ndarray, views: list[CameraView], tl: dict, tr: dict,
+                    settings: PoseSettings) -> np.ndarray:
+    """The pose covariance per settings.covariance_scale ("model": the corner model and the shared board
+    term; "residual", "noise", "max": an isotropic corner sigma, see pose_covariance)."""
+    if settings.covariance_scale != "model":
+        return pose_covariance(J, res, settings.covariance_scale, settings.corner_noise_px)
+    # Groups: a board in one camera, in the residuals' order (left view, then right view; keys sorted).
+    names = [("left", k[0]) for k in sorted(tl)] + [("right", k[0]) for k in sorted(tr)]
+    _, groups = np.unique(np.array([f"{a}/{b}" for a, b in names]), return_inverse=True)
+    cov_px2 = np.concatenate([v.image_covariance_px2 for v in views])
+    xy = np.concatenate([v.image_points_px for v in views])
+    basis, var = board_shared_error(xy, cov_px2, groups)
+    return model_covariance(J, cov_px2, groups, basis, var)
+
 
 
 def _pnp(view: CameraView) -> tuple[np.ndarray, np.ndarray] | None:
@@ -121,29 +191,36 @@ _RAYLEIGH_MEDIAN = 1.1774
 MAX_OUTLIER_SHARE = 0.25
 
 
-def corner_outliers(residuals: np.ndarray, sigmas: float, min_px: float) -> np.ndarray:
+def corner_outliers(residuals: np.ndarray, sigmas: float, min_px: float,
+                    cov_px2: np.ndarray | None = None) -> np.ndarray:
     """Which corners (residuals stacked as x, y per corner) lie beyond ``sigmas`` robust sigmas and ``min_px``.
 
     The robust sigma comes from the median residual length, so a few gross outliers do not inflate it.
+    With the corners' covariances (M, 2, 2) the residuals are compared in their own units (whitened): a
+    corner the detector knows to be noisy is not an outlier for being noisy.
     """
     norms = np.hypot(residuals[0::2], residuals[1::2])
     if norms.size == 0:
         return np.zeros(0, dtype=bool)
-    threshold = max(min_px, sigmas * float(np.median(norms)) / _RAYLEIGH_MEDIAN)
-    return norms > threshold
+    if cov_px2 is None:
+        threshold = max(min_px, sigmas * float(np.median(norms)) / _RAYLEIGH_MEDIAN)
+        return norms > threshold
+    white = np.linalg.norm(np.einsum("nij,nj->ni", whitening(cov_px2), residuals.reshape(-1, 2)), axis=1)
+    return (white > sigmas * float(np.median(white)) / _RAYLEIGH_MEDIAN) & (norms > min_px)
 
 
 def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: PoseSettings,
-              start_pose: Pose | None = None) -> Pose:
+              start_pose: Pose | None = None, covs: tuple[dict, dict] = ({}, {})) -> Pose:
     """One fit over the corner tables of the left and right images (see estimate_pose).
 
-    The refinement starts from ``start_pose`` when given (its mode is kept), else from initial_pose.
-    After the refinement, single corners that reproject far worse than the rest (corner_outliers) are
+    The refinement starts from ``start_pose`` when given (its mode is kept), else from initial_pose, and
+    weighs each corner by its covariance in ``covs`` (left, right; corner_covariances), or by
+    settings.corner_noise_px when it has none. After the refinement, single corners that reproject far worse than the rest (corner_outliers) are
     left out and the pose is refined again from where it is, a few rounds at most.
     """
     if not tl and not tr:
         return Pose.invalid("no board detected", n_left=0, n_right=0, n_both=0)
-    vl, vr = _views(cams, target, tl, tr)
+    vl, vr = _views(cams, target, tl, tr, covs, settings.corner_noise_px)
     start = (initial_pose(cams, target, tl, tr, vl, vr, settings) if start_pose is None
              else (start_pose.R, start_pose.t_m, start_pose.mode))
     if start is None:
@@ -156,7 +233,8 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: Pos
         # Mono: the other camera's few corners (fewer than 4 shared) still help, but only if they agree.
         views = [v for v in (vl, vr) if v.n > 0]
         R, t, res, J = refine_pose(R, t, views)
-        bad = corner_outliers(res, settings.outlier_sigmas, settings.outlier_min_px)
+        bad = corner_outliers(res, settings.outlier_sigmas, settings.outlier_min_px,
+                              np.concatenate([v.image_covariance_px2 for v in views]))
         if _round == 3 or not bad.any() or outliers + int(bad.sum()) > MAX_OUTLIER_SHARE * total:
             break
         keys = sorted(tl) + sorted(tr)          # the residuals' order: left view, then right view
@@ -165,9 +243,9 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: Pos
         tl = {k: v for k, v in tl.items() if k not in drop_left}
         tr = {k: v for k, v in tr.items() if k not in drop_right}
         outliers += int(bad.sum())
-        vl, vr = _views(cams, target, tl, tr)
+        vl, vr = _views(cams, target, tl, tr, covs, settings.corner_noise_px)
     rms = float(np.sqrt(np.mean(res ** 2))) if len(res) else float("nan")
-    cov = pose_covariance(J, res, settings.covariance_scale, settings.corner_noise_px)
+    cov = _fit_covariance(J, res, views, tl, tr, settings)
     boards = tuple(sorted({k[0] for k in tl} | {k[0] for k in tr}))
     pose = Pose(R, t, cov, mode, True, "", rms, n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)),
                 boards=boards, outliers=outliers)
@@ -196,7 +274,8 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
     left out of that camera and the pose refined again from where it is (``Pose.edge_on``).
     """
     tl, tr = corner_table(left, target), corner_table(right, target)
-    pose = _estimate(tl, tr, target, cams, settings)
+    covs = (corner_covariances(left, target), corner_covariances(right, target))
+    pose = _estimate(tl, tr, target, cams, settings, covs=covs)
     rejected: list[str] = []
     while (not pose.valid and np.isfinite(pose.rms_px) and pose.rms_px > settings.bounds.max_rms_px
            and len(rejected) < max_rejected):
@@ -206,7 +285,7 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
         trials = []
         for board, side in views:
             kl, kr = (_without(tl, {board}), tr) if side == "left" else (tl, _without(tr, {board}))
-            trial = _estimate(kl, kr, target, cams, settings)
+            trial = _estimate(kl, kr, target, cams, settings, covs=covs)
             if np.isfinite(trial.rms_px):
                 trials.append(((trial.valid, trial.n_corners if trial.valid else 0, -trial.rms_px),
                                trial, board, side, kl, kr))
@@ -219,7 +298,7 @@ def estimate_pose(left: Sequence[Detection], right: Sequence[Detection], target:
     if edge_on:
         kept_l = _without(tl, {board for board, side in edge_on if side == "left"})
         kept_r = _without(tr, {board for board, side in edge_on if side == "right"})
-        refit = _estimate(kept_l, kept_r, target, cams, settings, start_pose=pose)
+        refit = _estimate(kept_l, kept_r, target, cams, settings, start_pose=pose, covs=covs)
         # Only a valid pose replaces the first: the edge-on boards may be all there is.
         if refit.valid:
             refit.rejected = pose.rejected

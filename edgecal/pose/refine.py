@@ -16,7 +16,9 @@ class CameraView:
     """The corners one camera saw: robot-frame points (N, 3, metres) and their pixels (N, 2).
 
     ``R_cam_rig``, ``t_cam_rig_m`` place the rig frame in this camera (identity and zero for the left
-    camera, the rig's T_right_left for the right one).
+    camera, the rig's T_right_left for the right one). ``image_covariance_px2`` (N, 2, 2) is each corner's
+    covariance (the detector's); with it the refinement minimises the whitened residuals, without it
+    every corner weighs the same.
     """
 
     camera: CameraModel
@@ -24,6 +26,7 @@ class CameraView:
     t_cam_rig_m: np.ndarray
     object_points_m: np.ndarray
     image_points_px: np.ndarray
+    image_covariance_px2: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -50,28 +53,51 @@ def _residuals_and_jacobian(x: np.ndarray, views: list[CameraView]) -> tuple[np.
     return np.concatenate(res), np.vstack(jac)
 
 
+def whitening(cov_px2: np.ndarray) -> np.ndarray:
+    """(N, 2, 2) matrices L^T with |L^T r|^2 = r^T C^-1 r for each covariance C (N, 2, 2): L L^T = C^-1."""
+    return np.transpose(np.linalg.cholesky(np.linalg.inv(cov_px2)), (0, 2, 1))
+
+
+def _view_whitening(views: list[CameraView]) -> np.ndarray | None:
+    """The stacked whitening of all corners (in the residuals' order), None when no view has covariances."""
+    if all(v.image_covariance_px2 is None for v in views):
+        return None
+    parts = [whitening(v.image_covariance_px2) if v.image_covariance_px2 is not None
+             else np.broadcast_to(np.eye(2), (v.n, 2, 2)) for v in views if v.n > 0]
+    return np.concatenate(parts)
+
+
 def refine_pose(R0: np.ndarray, t0: np.ndarray, views: list[CameraView],
                 max_iterations: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Levenberg-Marquardt refinement from (R0, t0); returns R, t, residuals (px) and the Jacobian.
+    """Levenberg-Marquardt refinement from (R0, t0); returns R, t, residuals (px) and the Jacobian (px).
 
     The Jacobian is with respect to the perturbation [dt (m), dtheta (rad)] with R = exp([dtheta]x) R_hat,
-    t = t_hat + dt, i.e. the parameter order and meaning of the published covariance.
+    t = t_hat + dt, i.e. the parameter order and meaning of the published covariance. When the views carry
+    corner covariances the whitened residuals are minimised (each corner weighs by how well it is known);
+    the returned residuals and Jacobian are in pixels either way.
     """
     rvec0, _ = cv2.Rodrigues(np.asarray(R0, dtype=np.float64))
     x0 = np.concatenate([rvec0.ravel(), np.asarray(t0, dtype=np.float64).ravel()])
+    white = _view_whitening(views)
     cache: dict = {}
 
     def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         key = x.tobytes()
         if key not in cache:
             cache.clear()
-            cache[key] = _residuals_and_jacobian(x, views)
+            r, J = _residuals_and_jacobian(x, views)
+            if white is None:
+                cache[key] = (r, J, r, J)
+            else:
+                rw = np.einsum("nij,nj->ni", white, r.reshape(-1, 2)).ravel()
+                Jw = np.einsum("nij,njk->nik", white, J.reshape(-1, 2, 6)).reshape(-1, 6)
+                cache[key] = (rw, Jw, r, J)
         return cache[key]
 
     sol = least_squares(lambda x: evaluate(x)[0], x0, jac=lambda x: evaluate(x)[1], method="lm",
                         max_nfev=max_iterations, xtol=1e-12, ftol=1e-12, gtol=1e-12)
     x = sol.x
-    r, J = evaluate(x)
+    _, _, r, J = evaluate(x)
     R, _ = cv2.Rodrigues(x[:3].reshape(3, 1))
     # d rvec / d dtheta for R = exp([dtheta]x) R_hat: composeRT(rvec_hat, 0, dtheta = 0, 0) gives it.
     _, _, _, _, dr3dr2, *_ = cv2.composeRT(x[:3].reshape(3, 1), np.zeros((3, 1)), np.zeros((3, 1)),
@@ -94,4 +120,35 @@ def pose_covariance(J: np.ndarray, residuals: np.ndarray, scale: str, corner_noi
     if m < 6 or np.linalg.cond(JtJ) > 1e14:
         return np.full((6, 6), np.inf)
     cov = sigma2 * np.linalg.inv(JtJ)
+    return 0.5 * (cov + cov.T)
+
+
+def model_covariance(J: np.ndarray, cov_px2: np.ndarray, groups: np.ndarray, shared_basis: np.ndarray,
+                     shared_var: np.ndarray) -> np.ndarray:
+    """6x6 covariance of the perturbation [dt, dtheta] of a fit weighted by the corner covariances, with an
+    error shared by the corners of each group on top.
+
+    J: (2M, 6) pixel Jacobian (refine_pose); cov_px2: (M, 2, 2) the corners' covariances (the weights);
+    groups: (M,) int group of each corner (a board in one camera); shared_basis: (M, 2, K) how the K
+    parameters of a group's shared error move each corner (px per unit); shared_var: (G, K) their
+    variances. With W = C^-1 and H = J^T W J the weighted fit's covariance is
+    H^-1 J^T W (C + S) W J H^-1 = H^-1 + H^-1 (sum_g G_g^T Lambda_g G_g) H^-1, G_g = sum over the group's
+    corners of B_i^T W_i J_i: a shared error does not average out over a board's corners as independent
+    ones do. A singular H gives an infinite covariance.
+    """
+    m = len(cov_px2)
+    if m < 3:
+        return np.full((6, 6), np.inf)
+    W = np.linalg.inv(cov_px2)
+    Jc = J.reshape(m, 2, 6)
+    WJ = np.einsum("nij,njk->nik", W, Jc)
+    H = np.einsum("nji,njk->ik", Jc, WJ)
+    if not np.all(np.isfinite(H)) or np.linalg.cond(H) > 1e14:
+        return np.full((6, 6), np.inf)
+    Hi = np.linalg.inv(H)
+    k = shared_basis.shape[2]
+    G = np.zeros((int(groups.max()) + 1, k, 6))
+    np.add.at(G, groups, np.einsum("nji,njk->nik", shared_basis, WJ))
+    shared = np.einsum("gk,gki,gkj->ij", np.asarray(shared_var, dtype=np.float64), G, G)
+    cov = Hi + Hi @ shared @ Hi
     return 0.5 * (cov + cov.T)

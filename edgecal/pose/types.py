@@ -26,12 +26,15 @@ class PoseSettings:
                       match first). Either only starts the refinement, which minimises the reprojection
                       error in both cameras and so reaches the same optimum; "optimal" costs ~15 ms per
                       80 corners in OpenCV, hence the default "linear".
-    covariance_scale: how the 6x6 covariance (J^T J)^-1 is scaled:
-                      "residual" by the estimated corner noise sigma^2 = SSR / (m - 6);
-                      "noise"    by the configured ``corner_noise_px`` squared;
-                      "max"      by the larger of the two (default: a clean render's tiny residual must
-                                 not make the pose look more certain than the detector really is).
-    corner_noise_px:  1-sigma corner localisation noise of the detector, in pixels.
+    covariance_scale: how the 6x6 covariance is computed:
+                      "model"    (default) from the detector's per-corner covariances (the weights of the
+                                 refinement) plus an error shared by each board's corners
+                                 (edgecal.pose.estimate.SHARED_FLOOR_PX, SHARED_FRACTION);
+                      "residual" sigma^2 (J^T J)^-1 with the fit's own corner noise sigma^2 = SSR / (m - 6);
+                      "noise"    the same with the configured ``corner_noise_px``;
+                      "max"      the larger of the two (edgecal's default before the corner model).
+    corner_noise_px:  1-sigma corner localisation noise of the detector, in pixels: the "noise" scale, and
+                      the weight of a corner that comes without a covariance.
     outlier_sigmas,   a corner whose reprojection residual exceeds both ``outlier_sigmas`` robust sigmas
     outlier_min_px:   (from the median residual) and ``outlier_min_px`` is left out and the pose refitted:
                       one corner locked onto the wrong structure must not move the pose by millimetres.
@@ -39,7 +42,7 @@ class PoseSettings:
     """
 
     triangulation: str = "linear"
-    covariance_scale: str = "max"
+    covariance_scale: str = "model"
     corner_noise_px: float = 0.1
     outlier_sigmas: float = 4.0
     outlier_min_px: float = 0.5

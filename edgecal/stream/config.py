@@ -7,7 +7,7 @@
     rig: out/demo/rig.yaml       # stereo calibration (cv2.FileStorage, T in metres)
     target: targets/robot-3boards.yaml
     detector: null               # optional detector thresholds file (configs/detector.yaml format)
-    pose:    {triangulation: linear, covariance_scale: max, corner_noise_px: 0.1, outlier_sigmas: 4.0,
+    pose:    {triangulation: linear, covariance_scale: model, corner_noise_px: 0.1, outlier_sigmas: 4.0,
               outlier_min_px: 0.5,
               min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
     tracking: {enabled: true, max_gap_s: 0.5, min_confirmed_fraction: 0.6}
@@ -102,7 +102,7 @@ def _read_pose(r: ConfigReader) -> PoseSettings:
         max_rotation_std_deg=r.number("max_rotation_std_deg", b.max_rotation_std_deg, positive=True))
     return PoseSettings(
         triangulation=r.string("triangulation", d.triangulation, choices=("optimal", "linear")),
-        covariance_scale=r.string("covariance_scale", d.covariance_scale, choices=("max", "residual", "noise")),
+        covariance_scale=r.string("covariance_scale", d.covariance_scale, choices=("model", "max", "residual", "noise")),
         corner_noise_px=r.number("corner_noise_px", d.corner_noise_px, positive=True),
         outlier_sigmas=r.number("outlier_sigmas", d.outlier_sigmas, minimum=2.0),
         outlier_min_px=r.number("outlier_min_px", d.outlier_min_px, positive=True),

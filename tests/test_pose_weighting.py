@@ -1,0 +1,102 @@
+"""Pose from corners with their own covariances: weighted refinement, the model covariance (corner model
+plus the error a board's corners share) against Monte-Carlo spread, unusable corners left out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_pose import render_detections, robot_target, rotation_error_rad, stereo_cams, true_pose
+
+from edgecal.detection.types import Detection
+from edgecal.pose import PoseSettings, estimate_pose
+from edgecal.pose.estimate import board_shared_error
+
+
+def _random_covariances(rng: np.random.Generator, n: int, sigma_px: float) -> np.ndarray:
+    """(n, 2, 2) anisotropic covariances, sigmas 0.3-2 x sigma_px, random orientation."""
+    s = sigma_px * rng.uniform(0.3, 2.0, size=(n, 2))
+    a = rng.uniform(0, np.pi, n)
+    R = np.stack([np.cos(a), -np.sin(a), np.sin(a), np.cos(a)], axis=1).reshape(n, 2, 2)
+    return R @ (s[:, :, None] ** 2 * np.eye(2)) @ np.transpose(R, (0, 2, 1))
+
+
+def _with_model_errors(dets: list[Detection], covs: list[np.ndarray], rng: np.random.Generator) -> list[Detection]:
+    """Detections whose corners carry ``covs`` and errors drawn from the pose's error model: independent
+    corner errors from those covariances plus the board's shared affine error (board_shared_error)."""
+    out = []
+    for det, cov in zip(dets, covs):
+        basis, var = board_shared_error(det.corners, cov, np.zeros(len(cov), dtype=np.int64))
+        shared = basis @ (rng.standard_normal(6) * np.sqrt(var[0]))
+        own = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.standard_normal((len(cov), 2)))
+        out.append(Detection(det.board, det.corners + own + shared, det.ids, det.quality, det.grid,
+                             covariance=cov, unusable=[""] * len(cov)))
+    return out
+
+
+def test_model_covariance_matches_monte_carlo_spread() -> None:
+    """Corners with different, anisotropic covariances and errors from the model: NEES averages 6."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    rng = np.random.default_rng(11)
+    left0, right0 = render_detections(target, cams, R, t)
+    covs_l = [_random_covariances(rng, len(d.corners), 0.2) for d in left0]
+    covs_r = [_random_covariances(rng, len(d.corners), 0.2) for d in right0]
+    nees, errors, covs = [], [], []
+    for _ in range(300):
+        left, right = _with_model_errors(left0, covs_l, rng), _with_model_errors(right0, covs_r, rng)
+        pose = estimate_pose(left, right, target, cams)
+        assert pose.valid, pose.reason
+        e = np.concatenate([pose.t_m - t, rotation_error_rad(pose.R, R)])
+        errors.append(e)
+        covs.append(pose.covariance)
+        nees.append(e @ np.linalg.solve(pose.covariance, e))
+    assert np.mean(nees) == pytest.approx(6.0, rel=0.15)
+    ratio = np.array(errors).std(axis=0) / np.sqrt(np.diag(np.mean(covs, axis=0)))
+    assert np.all((ratio > 0.75) & (ratio < 1.25)), ratio
+
+
+def test_weighting_by_the_corner_covariance_is_more_accurate() -> None:
+    """Every third corner 10x noisier than the others: the weighted fit (the detector's covariances)
+    beats the fit that weighs every corner alike."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    rng = np.random.default_rng(3)
+    left0, right0 = render_detections(target, cams, R, t)
+    err_w, err_u = [], []
+    for _ in range(60):
+        dets = []
+        for side in (left0, right0):
+            out = []
+            for d in side:
+                sigma = np.where(np.arange(len(d.corners)) % 3 == 0, 0.6, 0.06)
+                cov = sigma[:, None, None] ** 2 * np.eye(2)
+                noisy = d.corners + rng.normal(0, 1, d.corners.shape) * sigma[:, None]
+                out.append(Detection(d.board, noisy, d.ids, d.quality, d.grid, covariance=cov,
+                                     unusable=[""] * len(cov)))
+            dets.append(out)
+        weighted = estimate_pose(dets[0], dets[1], target, cams)
+        plain = estimate_pose([Detection(d.board, d.corners, d.ids, d.quality, d.grid) for d in dets[0]],
+                              [Detection(d.board, d.corners, d.ids, d.quality, d.grid) for d in dets[1]],
+                              target, cams, PoseSettings(outlier_sigmas=100.0))
+        err_w.append(np.linalg.norm(weighted.t_m - t))
+        err_u.append(np.linalg.norm(plain.t_m - t))
+    assert np.sqrt(np.mean(np.square(err_w))) < 0.7 * np.sqrt(np.mean(np.square(err_u)))
+
+
+def test_unusable_corners_are_left_out() -> None:
+    """A corner the detector marked unusable does not enter the fit, however far off it is."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    d = left[0]
+    corners = d.corners.copy()
+    corners[2] += 40.0
+    cov = np.broadcast_to(np.eye(2) * 0.01, (len(corners), 2, 2)).copy()
+    cov[2] = np.nan
+    reasons = [""] * len(corners)
+    reasons[2] = "covariance not positive definite (a line or an edge, not a corner)"
+    left = [Detection(d.board, corners, d.ids, d.quality, d.grid, covariance=cov, unusable=reasons)] + left[1:]
+    pose = estimate_pose(left, right, target, cams)
+    assert pose.valid and pose.outliers == 0
+    assert pose.n_left == sum(len(x.corners) for x in left) - 1
+    assert np.linalg.norm(pose.t_m - t) < 1e-6
