@@ -100,3 +100,18 @@ def test_unusable_corners_are_left_out() -> None:
     assert pose.valid and pose.outliers == 0
     assert pose.n_left == sum(len(x.corners) for x in left) - 1
     assert np.linalg.norm(pose.t_m - t) < 1e-6
+
+
+def test_a_start_behind_the_camera_gives_an_invalid_pose_not_an_exception() -> None:
+    """A start that puts corners behind a camera (their projection is undefined) is no pose, with a reason
+    (it happened while leaving boards out one by one on a noisy sequence)."""
+    from edgecal.pose.estimate import _estimate, corner_table
+
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    behind = estimate_pose(left, right, target, cams)
+    behind.t_m = -behind.t_m
+    pose = _estimate(corner_table(left, target), corner_table(right, target), target, cams, PoseSettings(),
+                     start_pose=behind)
+    assert not pose.valid and "behind a camera" in pose.reason

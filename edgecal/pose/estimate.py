@@ -232,7 +232,13 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: Pos
     for _round in range(4):
         # Mono: the other camera's few corners (fewer than 4 shared) still help, but only if they agree.
         views = [v for v in (vl, vr) if v.n > 0]
-        R, t, res, J = refine_pose(R, t, views)
+        try:
+            R, t, res, J = refine_pose(R, t, views)
+        except ValueError:
+            # least_squares refuses a start that puts corners behind a camera (no projection there), e.g.
+            # a rigid fit to a misread board while boards are tried one by one: no pose from this start.
+            return Pose.invalid("no pose: the starting pose puts corners behind a camera", mode,
+                                n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)))
         bad = corner_outliers(res, settings.outlier_sigmas, settings.outlier_min_px,
                               np.concatenate([v.image_covariance_px2 for v in views]))
         if _round == 3 or not bad.any() or outliers + int(bad.sum()) > MAX_OUTLIER_SHARE * total:
