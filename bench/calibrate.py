@@ -22,6 +22,9 @@ z-scores |error| / reported std of fx and of T (honest std: median z ~ 0.67), an
 Lens models (--lens-views, --lens-draws): planar stereo calibrations of simulated views (exact
 projections + 0.1 px) through a radtan, a rational and a 160 deg fisheye rig, scored against the truth
 (focal %, principal point px, largest distortion parameter error, baseline mm, |error|/σ).
+Planar renders (--planar-sets 6): mono calibrations of rendered hand-held sessions (edgecal.synth.handheld,
+640x480, 9x6 board, one frame per pose, the detector's corners) with the corners weighted by the detector's
+covariances and without, scored against the truth (|error|/σ over fx fy cx cy k1 k2).
 Scale (--scale 300): one planar stereo calibration of that many view pairs in a fresh process: seconds
 and peak RSS.
 
@@ -93,7 +96,9 @@ def _exact(cs: CornerSet, cam: CameraModel, pose: RigidTransform) -> CornerSet:
 
 
 def _noisy(cs: CornerSet, sigma: float, rng: np.random.Generator) -> CornerSet:
-    return CornerSet(cs.object_mm, cs.image_px + rng.normal(0.0, sigma, cs.image_px.shape), cs.keys)
+    """``cs`` plus Gaussian noise of ``sigma`` px; the detector's covariances (if any) grow by it."""
+    cov = None if cs.image_cov_px2 is None else cs.image_cov_px2 + sigma ** 2 * np.eye(2)
+    return CornerSet(cs.object_mm, cs.image_px + rng.normal(0.0, sigma, cs.image_px.shape), cs.keys, cov)
 
 
 def _angle_deg(r: np.ndarray) -> float:
@@ -124,6 +129,14 @@ def run_edgecal(left: CornerSet, right: CornerSet, size: tuple[int, int], truth:
     s = _score(cal.cameras, cal.rotation, cal.translation_mm, cal.view_poses[0], cal.rms_px, truth, left, right, ms)
     s["z_fx"] = float(abs(cal.cameras[0].camera_matrix[0, 0] - truth["left"].camera_matrix[0, 0]) / cal.camera_std[0]["fx"])
     s["z_T"] = float(np.mean(np.abs(cal.translation_mm - truth["T"]) / cal.translation_std_mm))
+    # |error| / sigma of every intrinsic (fx, fy, cx, cy, k1 of both cameras) and of T: median over them
+    z = []
+    for c, g, std in zip(cal.cameras, (truth["left"], truth["right"]), cal.camera_std):
+        for name, i, j in (("fx", 0, 0), ("fy", 1, 1), ("cx", 0, 2), ("cy", 1, 2)):
+            z.append(abs(c.camera_matrix[i, j] - g.camera_matrix[i, j]) / std[name])
+        z.append(abs(c.dist_coeffs[0] - g.dist_coeffs[0]) / std["k1"])
+    z += list(np.abs(cal.translation_mm - truth["T"]) / cal.translation_std_mm)
+    s["z_all"] = float(np.median(z))
     s["dropped"] = len(cal.dropped)
     for side, info in cal.init.items():
         for m in ("tsai", "dlt"):
@@ -213,11 +226,64 @@ def synthetic(args: argparse.Namespace) -> dict:
     return results
 
 
+def planar_synthetic(n_sets: int, n_poses: int = 12, photometric: str = "normal") -> dict:
+    """Mono planar calibration from rendered hand-held sessions (edgecal.synth.handheld, 640x480, 9x6
+    board, one held frame per pose; the renderer's lens model k1k2p1p2): errors of fx, fy, cx, cy, k1, k2 against the truth and |error| / sigma,
+    with the detector's corner covariances as weights and without (every corner alike)."""
+    from edgecal.calibration.assign import assign
+    from edgecal.calibration.views import corner_set
+    from edgecal.synth.handheld import handheld_rig, handheld_sequence
+
+    out: dict = {"sets": 0, "weighted": [], "unweighted": []}
+    for seed in range(n_sets):
+        rig = handheld_rig([seed, 31], (640, 480), stereo=False)
+        target = planar_target(rig.board.cols, rig.board.rows, rig.board.square_mm, name=rig.board.name)
+        views = []
+        for fr in handheld_sequence([seed, 31], rig, n_poses=n_poses, hold_frames=1, move_frames=0,
+                                    photometric=photometric):
+            a = assign(edgecal.detect(fr.left.image, target), target)
+            if a is not None:
+                views.append(corner_set(target, list(a.corners.keys), a.corners.image_px, a.corners.image_cov_px2))
+        if len(views) < 6:
+            continue
+        out["sets"] += 1
+        truth = {"fx": rig.left.K[0, 0], "fy": rig.left.K[1, 1], "cx": rig.left.K[0, 2], "cy": rig.left.K[1, 2],
+                 "k1": rig.left.dist[0], "k2": rig.left.dist[1]}
+        for key, vs in (("weighted", views), ("unweighted", [CornerSet(v.object_mm, v.image_px, v.keys) for v in views])):
+            try:
+                cal = calibrate_planar(vs, None, (640, 480), RefineOptions(distortion="k1k2p1p2"))
+            except edgecal.errors.EdgecalError as exc:
+                print(f"planar seed {seed} {key}: edgecal failed: {exc}", file=sys.stderr)
+                continue
+            cam, std = cal.cameras[0], cal.camera_std[0]
+            est = {"fx": cam.camera_matrix[0, 0], "fy": cam.camera_matrix[1, 1], "cx": cam.camera_matrix[0, 2],
+                   "cy": cam.camera_matrix[1, 2], "k1": cam.dist_coeffs[0], "k2": cam.dist_coeffs[1]}
+            out[key].append({"focal_pct": 50 * (abs(est["fx"] / truth["fx"] - 1) + abs(est["fy"] / truth["fy"] - 1)),
+                             "pp_px": float(np.hypot(est["cx"] - truth["cx"], est["cy"] - truth["cy"])),
+                             "k1_abs": abs(est["k1"] - truth["k1"]), "rms_px": cal.rms_px,
+                             "z": [float(abs(est[n] - truth[n]) / std[n]) for n in truth]})
+    return out
+
+
+def print_planar(res: dict) -> None:
+    print(f"\n== planar mono, {res['sets']} rendered hand-held sessions (640x480, 9x6 board, one frame per pose)")
+    for key in ("weighted", "unweighted"):
+        rows = res[key]
+        if not rows:
+            continue
+        z = np.concatenate([r["z"] for r in rows])
+        print(f"{key:<11} focal {np.median([r['focal_pct'] for r in rows]):.4f} %, principal point "
+              f"{np.median([r['pp_px'] for r in rows]):.3f} px, k1 {np.median([r['k1_abs'] for r in rows]):.4f}, "
+              f"RMS {np.median([r['rms_px'] for r in rows]):.3f} px; |error| / sigma over fx fy cx cy k1 k2: "
+              f"median {np.median(z):.2f}, p90 {np.percentile(z, 90):.2f} (consistent: 0.67, 1.64)")
+
+
 def print_synthetic(res: dict) -> None:
     print(f"\n== box stereo, {res['pairs']} rendered pairs (1280x800, 100 mm box at 250-350 mm), "
           f"failed detections: {res['failed'] or 'none'}; detector corner RMS vs truth (median) "
           f"{np.median(res['detector_rms_px']):.3f} px")
-    head = f"{'corners':<18}{'method':<9}" + "".join(f"{m:>12}" for m in METRICS) + f"{'z_fx':>7}{'z_T':>7}"
+    head = (f"{'corners':<18}{'method':<9}" + "".join(f"{m:>12}" for m in METRICS)
+            + f"{'z_fx':>7}{'z_T':>7}{'z_all':>7}")
     print(head)
     for key, bucket in res["sets"].items():
         med = {}
@@ -225,10 +291,10 @@ def print_synthetic(res: dict) -> None:
             rows = bucket[method]
             if not rows:
                 continue
-            med[method] = _median_table(rows, METRICS + ("z_fx", "z_T"))
+            med[method] = _median_table(rows, METRICS + (("z_fx", "z_T", "z_all") if method == "edgecal" else ()))
             line = f"{key:<18}{method:<9}" + "".join(f"{med[method][m]:>12.4f}" for m in METRICS)
             if method == "edgecal":
-                line += f"{med[method]['z_fx']:>7.2f}{med[method]['z_T']:>7.2f}"
+                line += f"{med[method]['z_fx']:>7.2f}{med[method]['z_T']:>7.2f}{med[method]['z_all']:>7.2f}"
             print(line)
         if "edgecal" in med and "opencv" in med:
             print(f"{'':<18}{'ratio':<9}" + "".join(
@@ -378,9 +444,10 @@ def main() -> int:
     p.add_argument("--lens-views", type=int, default=20, help="view pairs per lens-model calibration (default 20)")
     p.add_argument("--lens-draws", type=int, default=3, help="noise draws per lens model (default 3)")
     p.add_argument("--scale", default="300", help="view pairs of the scale runs, comma-separated (default 300)")
-    p.add_argument("--only", choices=("box", "lenses", "scale", "real"), action="append",
+    p.add_argument("--only", choices=("box", "planar", "lenses", "scale", "real"), action="append",
                    help="run only these sections (repeatable; default all)")
     p.add_argument("--scale-child", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--planar-sets", type=int, default=6, help="rendered hand-held planar sessions (default 6)")
     args = p.parse_args()
     if args.scale_child:
         _scale_child(args.scale_child)
@@ -389,11 +456,14 @@ def main() -> int:
         print(f"bench/calibrate.py: error: {args.json} exists; pass --force to replace it", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    only = set(args.only or ("box", "lenses", "scale", "real"))
+    only = set(args.only or ("box", "planar", "lenses", "scale", "real"))
     res: dict = {}
     if "box" in only:
         res["synthetic"] = synthetic(args)
         print_synthetic(res["synthetic"])
+    if "planar" in only and args.planar_sets:
+        res["planar"] = planar_synthetic(args.planar_sets)
+        print_planar(res["planar"])
     if "lenses" in only:
         res["lens_models"] = lens_models(args)
         print_lens_models(res["lens_models"], args.lens_views)

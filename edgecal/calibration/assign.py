@@ -83,14 +83,19 @@ class Assignment:
 
 
 def _corner_set(dets: list[Detection], target: Target, choice: tuple[tuple[Board, int], ...]) -> CornerSet:
-    objs, imgs, keys = [], [], []
+    """The usable corners of ``dets`` on the boards ``choice`` names, with their covariances when every
+    detection has them."""
+    objs, imgs, covs, keys = [], [], [], []
     for det, (board, deg) in zip(dets, choice):
         src = target.board(det.board)
-        ids = rotate_ids(np.asarray(det.ids, dtype=np.int64).reshape(-1, 2), src.cols, src.rows, deg)
+        ok = det.usable()
+        ids = rotate_ids(np.asarray(det.ids, dtype=np.int64).reshape(-1, 2)[ok], src.cols, src.rows, deg)
         objs.append(board.target_points_mm(ids))
-        imgs.append(np.asarray(det.corners, dtype=np.float64).reshape(-1, 2))
+        imgs.append(np.asarray(det.corners, dtype=np.float64).reshape(-1, 2)[ok])
+        covs.append(None if det.covariance is None else det.covariance[ok])
         keys += [(board.name, int(c), int(r)) for c, r in ids]
-    return CornerSet(np.concatenate(objs), np.concatenate(imgs), tuple(keys))
+    cov = None if any(c is None for c in covs) else np.concatenate(covs)
+    return CornerSet(np.concatenate(objs), np.concatenate(imgs), tuple(keys), cov)
 
 
 def _dlt_residual(obj: np.ndarray, img: np.ndarray) -> float:

@@ -169,8 +169,7 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
             common = [k for k in a.keys if k in set(b.keys)]
             ia = [a.keys.index(k) for k in common]
             ib = [b.keys.index(k) for k in common]
-            pairs.append((CornerSet(a.object_mm[ia], a.image_px[ia], tuple(common)),
-                          CornerSet(b.object_mm[ib], b.image_px[ib], tuple(common))))
+            pairs.append((a.take(ia), b.take(ib)))
         cams_views = [[p[0] for p in pairs], [p[1] for p in pairs]]
         index = keep
     else:

@@ -50,6 +50,7 @@ class Observation:
     object_mm: np.ndarray   # (N, 3)
     image_px: np.ndarray    # (N, 2)
     labels: tuple[str, ...] = ()  # one name per corner, for reports (e.g. "left top (2,3)")
+    image_cov_px2: np.ndarray | None = None   # (N, 2, 2) corner covariances: the residuals are whitened by them
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,7 @@ class RefineResult:
     std: np.ndarray                  # standard deviation of every parameter (inf if undetermined)
     covariance: np.ndarray
     rms_px: float
-    sigma_px: float                  # noise estimate sqrt(SSR / (m - n)) per coordinate
+    sigma_px: float                  # noise estimate sqrt(SSR / (m - n)) per coordinate (px)
     residuals: list[np.ndarray]      # per observation, (N, 2) reprojected - detected (dropped corners included)
     inliers: list[np.ndarray]        # per observation, (N,) bool
     dropped: list[str] = field(default_factory=list)
@@ -167,13 +168,28 @@ def _rotations(rvecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, dR
 
 
+# Huber threshold of a weighted problem, in the corners' own sigmas: beyond 3 sigma a residual counts linearly.
+HUBER_SIGMAS = 3.0
+
+
+def weighted(obs: list[Observation]) -> bool:
+    """Whether the corners of every observation carry covariances (then the problem is weighted by them)."""
+    return bool(obs) and all(o.image_cov_px2 is not None for o in obs)
+
+
 class _Problem:
-    """The stacked inlier corners of every observation and their residuals and sparse Jacobian."""
+    """The stacked inlier corners of every observation and their residuals and sparse Jacobian, whitened
+    by the corners' covariances when ``whiten`` (|L^T r|^2 = r^T C^-1 r: each corner counts by how well
+    the detector knows it)."""
 
     def __init__(self, obs: list[Observation], masks: list[np.ndarray], layout: _Layout,
-                 start: list[CameraModel]) -> None:
+                 start: list[CameraModel], whiten: bool = False) -> None:
         self.layout, self.start = layout, start
         keep = [(o, m) for o, m in zip(obs, masks) if m.any()]
+        self.white = None
+        if whiten:
+            cov = np.concatenate([o.image_cov_px2[m] for o, m in keep])
+            self.white = np.transpose(np.linalg.cholesky(np.linalg.inv(cov)), (0, 2, 1))
         self.X = np.concatenate([o.object_mm[m] for o, m in keep])
         self.q = np.concatenate([o.image_px[m] for o, m in keep])
         self.cam = np.concatenate([np.full(int(m.sum()), o.camera) for o, m in keep])
@@ -186,7 +202,7 @@ class _Problem:
         return 2 * len(self.X)
 
     def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_matrix]:
-        """Residuals (2M,) reprojected - detected and their Jacobian (2M, n) as a sparse matrix."""
+        """Residuals (2M,) reprojected - detected (px, or whitened) and their Jacobian (2M, n), sparse."""
         key = x.tobytes()
         if self._cache is not None and self._cache[0] == key:
             return self._cache[1], self._cache[2]
@@ -228,6 +244,9 @@ class _Problem:
             elif n_cols > n_intr + 6:
                 # camera 0 has no rig pose: point its unused entries at a real column with value 0
                 cols[sel, n_intr + 6:] = cols[sel, :1]
+        if self.white is not None:
+            res = np.einsum("nij,nj->ni", self.white, res)
+            vals = np.einsum("nij,njk->nik", self.white, vals)
         m = len(self.X)
         rows = np.repeat(np.arange(2 * m).reshape(m, 2), n_cols, axis=1).reshape(m, 2, n_cols)
         jac = scipy.sparse.csr_matrix((vals.ravel(), (rows.ravel(), np.repeat(cols[:, None, :], 2, axis=1).ravel())),
@@ -252,10 +271,11 @@ class _Problem:
 
 
 def _residual_norms(obs: list[Observation], layout: _Layout, start: list[CameraModel],
-                    x: np.ndarray) -> list[np.ndarray]:
-    """Per observation, (N, 2) reprojected - detected for every corner (outliers included)."""
+                    x: np.ndarray, whiten: bool = False) -> list[np.ndarray]:
+    """Per observation, (N, 2) reprojected - detected for every corner (outliers included); px, or in the
+    corners' own sigmas when ``whiten``."""
     everything = [np.ones(len(o.object_mm), dtype=bool) for o in obs]
-    r, _ = _Problem(obs, everything, layout, start).evaluate(x)
+    r, _ = _Problem(obs, everything, layout, start, whiten).evaluate(x)
     out, k = [], 0
     for o in obs:
         out.append(r[2 * k:2 * (k + len(o.object_mm))].reshape(-1, 2).copy())
@@ -277,8 +297,13 @@ def refine(observations: list[Observation], cameras: list[CameraModel], view_pos
     layout = _Layout(start, len(view_poses), options.distortion, options.fix_principal_point)
     obs = [Observation(o.camera, o.view, np.asarray(o.object_mm, np.float64).reshape(-1, 3),
                        np.asarray(o.image_px, np.float64).reshape(-1, 2),
-                       tuple(o.labels) or tuple(f"cam{o.camera} view{o.view} #{i}" for i in range(len(o.object_mm))))
+                       tuple(o.labels) or tuple(f"cam{o.camera} view{o.view} #{i}" for i in range(len(o.object_mm))),
+                       o.image_cov_px2)
            for o in observations]
+    # Weighted by the detector's corner covariances when every observation has them (a corners file
+    # re-solved without them, or corners from elsewhere, weigh every corner alike).
+    whiten = weighted(obs)
+    huber = (HUBER_SIGMAS if whiten else options.loss_scale_px) if options.loss_scale_px else None
     masks = [np.ones(len(o.object_mm), dtype=bool) for o in obs]
     n_params = len(layout.names)
     if 2 * sum(len(o.object_mm) for o in obs) <= n_params:
@@ -288,28 +313,35 @@ def refine(observations: list[Observation], cameras: list[CameraModel], view_pos
     dropped: list[str] = []
 
     # Robust pass: a few bad corners must not drag the solution before they can be identified.
-    x = _Problem(obs, masks, layout, start).solve(x, options.loss_scale_px)
+    x = _Problem(obs, masks, layout, start, whiten).solve(x, huber)
     for _ in range(options.max_rounds):
         norms = [np.linalg.norm(r, axis=1) for r in _residual_norms(obs, layout, start, x)]
-        inlier_norms = np.concatenate([n[m] for n, m in zip(norms, masks)])
+        # Outliers are judged in the corners' own sigmas when weighted: a corner known to be noisy is not
+        # an outlier for being noisy; it must also be outlier_min_px off.
+        units = [np.linalg.norm(r, axis=1) for r in _residual_norms(obs, layout, start, x, True)] if whiten else norms
+        inlier_norms = np.concatenate([n[m] for n, m in zip(units, masks)])
         # Per-corner residual norms of 2-D Gaussian noise follow a Rayleigh law: median = 1.1774 sigma.
         sigma = float(np.median(inlier_norms)) / 1.1774
-        limit = max(options.outlier_min_px, options.outlier_sigmas * sigma)
+        limit = options.outlier_sigmas * sigma if whiten else max(options.outlier_min_px, options.outlier_sigmas * sigma)
         changed = False
-        for o, n, m in zip(obs, norms, masks):
-            bad = m & (n > limit)
+        for o, n, u, m in zip(obs, norms, units, masks):
+            bad = m & (u > limit) & (n > options.outlier_min_px)
             for i in np.flatnonzero(bad):
-                dropped.append(f"{o.labels[i]}: residual {n[i]:.2f} px > {limit:.2f} px")
+                dropped.append(f"{o.labels[i]}: residual {n[i]:.2f} px" + (
+                    f" = {u[i]:.1f} sigma > {limit:.1f} sigma" if whiten else f" > {limit:.2f} px"))
             if bad.any():
                 m &= ~bad
                 changed = True
         if 2 * sum(int(m.sum()) for m in masks) <= n_params:
             raise DegenerateInput("too many corners were rejected as outliers to determine the calibration")
-        x = _Problem(obs, masks, layout, start).solve(x, None)
+        x = _Problem(obs, masks, layout, start, whiten).solve(x, None)
         if not changed:
             break
 
-    r, j = _Problem(obs, masks, layout, start).evaluate(x)
+    # The covariance of the weighted problem: s2 (J_w^T J_w)^-1, s2 the whitened residual's chi^2 per degree
+    # of freedom (about 1 when the corner model is right; it scales the model by what the fit shows).
+    r, j = _Problem(obs, masks, layout, start, whiten).evaluate(x)
+    r_px = _Problem(obs, masks, layout, start).evaluate(x)[0] if whiten else r
     dof = max(len(r) - n_params, 1)
     s2 = float(r @ r) / dof
     jtj = (j.T @ j).toarray()
@@ -330,8 +362,9 @@ def refine(observations: list[Observation], cameras: list[CameraModel], view_pos
     cams, views, rigs = layout.unpack(x, start)
     residuals = _residual_norms(obs, layout, start, x)
     inliers = [m.copy() for m in masks]
-    rms = float(np.sqrt(np.mean(np.sum(r.reshape(-1, 2) ** 2, axis=1))))
-    return RefineResult(cams, views, rigs, list(layout.names), x, std, cov, rms, float(np.sqrt(s2)),
+    rms = float(np.sqrt(np.mean(np.sum(r_px.reshape(-1, 2) ** 2, axis=1))))
+    return RefineResult(cams, views, rigs, list(layout.names), x, std, cov, rms,
+                        float(np.sqrt(float(r_px @ r_px) / dof)),
                         residuals, inliers, dropped, rank_deficient, undetermined)
 
 
@@ -344,7 +377,8 @@ def observations_for(corners: list[list[CornerSet]], view_ids: list[int] | list[
     names = CAMERA_NAMES if len(corners) == 2 else ("camera",)
     multi = max(len(c) for c in corners) > 1
     ids = view_ids if view_ids is not None else list(range(max(len(c) for c in corners)))
-    return [Observation(c, v, cs.object_mm, cs.image_px, cs.labels(names[c], ids[v] if multi else None))
+    return [Observation(c, v, cs.object_mm, cs.image_px, cs.labels(names[c], ids[v] if multi else None),
+                        cs.image_cov_px2)
             for c, per_view in enumerate(corners) for v, cs in enumerate(per_view) if len(cs)]
 
 

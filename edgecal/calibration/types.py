@@ -49,9 +49,16 @@ class CornerSet:
     object_mm: np.ndarray   # (N, 3)
     image_px: np.ndarray    # (N, 2)
     keys: tuple[tuple[str, int, int], ...]
+    image_cov_px2: np.ndarray | None = None   # (N, 2, 2) the detector's corner covariances, if known
 
     def __len__(self) -> int:
         return len(self.keys)
+
+    def take(self, index: list[int] | np.ndarray) -> "CornerSet":
+        """The corners at ``index``, covariances included."""
+        idx = np.asarray(index, dtype=np.int64)
+        cov = None if self.image_cov_px2 is None else self.image_cov_px2[idx]
+        return CornerSet(self.object_mm[idx], self.image_px[idx], tuple(self.keys[i] for i in idx), cov)
 
     def labels(self, camera: str, view: int | str | None = None) -> tuple[str, ...]:
         """Human-readable corner names for reports, e.g. ``left left03.jpg board top (3,1)``.

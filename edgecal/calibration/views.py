@@ -74,8 +74,10 @@ def corners_path(rig_path: str | Path) -> Path:
     return p.with_name(f"{stem}.corners.csv")
 
 
-def corner_set(target: Target, keys: list[tuple[str, int, int]], image_px: np.ndarray) -> CornerSet:
-    """The CornerSet of ``keys`` (board, col, row) at ``image_px`` (N, 2), with the target's 3-D points (mm).
+def corner_set(target: Target, keys: list[tuple[str, int, int]], image_px: np.ndarray,
+               image_cov_px2: np.ndarray | None = None) -> CornerSet:
+    """The CornerSet of ``keys`` (board, col, row) at ``image_px`` (N, 2), with the target's 3-D points (mm)
+    and the corners' covariances (N, 2, 2) when known.
 
     A planar target keeps each point in its board's own frame (z = 0), as planar calibration needs;
     a box puts it in the target frame.
@@ -87,7 +89,7 @@ def corner_set(target: Target, keys: list[tuple[str, int, int]], image_px: np.nd
         board = target.board(b)
         ids = np.array([[c, r]])
         obj[i] = (board.board_points_mm(ids) if target.is_planar else board.target_points_mm(ids))[0]
-    return CornerSet(obj, np.asarray(image_px, dtype=np.float64).reshape(-1, 2), tuple(keys))
+    return CornerSet(obj, np.asarray(image_px, dtype=np.float64).reshape(-1, 2), tuple(keys), image_cov_px2)
 
 
 def corners_text(views: list[View], corners: list[list[CornerSet]], image_size: tuple[int, int],

@@ -142,7 +142,7 @@ def _planar_corners(dets: list, target: Target) -> CornerSet:
     a = assign(dets, target)
     if a is None:
         return corner_set(target, [], np.zeros((0, 2)))
-    return corner_set(target, list(a.corners.keys), a.corners.image_px)
+    return corner_set(target, list(a.corners.keys), a.corners.image_px, a.corners.image_cov_px2)
 
 
 def detect_views(views: list[View], target: Target, max_pixels: int = DEFAULT_MAX_PIXELS
