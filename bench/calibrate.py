@@ -329,8 +329,10 @@ def _edgecal_corners(path: Path, target) -> CornerSet:
     if not dets:
         return CornerSet(np.zeros((0, 3)), np.zeros((0, 2)), ())
     d = dets[0]
-    return CornerSet(board.board_points_mm(d.ids), np.asarray(d.corners, float),
-                     tuple((board.name, int(a), int(b)) for a, b in d.ids))
+    ok = d.usable()
+    return CornerSet(board.board_points_mm(d.ids[ok]), np.asarray(d.corners, float)[ok],
+                     tuple((board.name, int(a), int(b)) for a, b in d.ids[ok]),
+                     None if d.covariance is None else d.covariance[ok])
 
 
 def bouguet(args: argparse.Namespace) -> dict | None:
