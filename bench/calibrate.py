@@ -228,54 +228,72 @@ def synthetic(args: argparse.Namespace) -> dict:
 
 def planar_synthetic(n_sets: int, n_poses: int = 12, photometric: str = "normal") -> dict:
     """Mono planar calibration from rendered hand-held sessions (edgecal.synth.handheld, 640x480, 9x6
-    board, one held frame per pose; the renderer's lens model k1k2p1p2): errors of fx, fy, cx, cy, k1, k2 against the truth and |error| / sigma,
-    with the detector's corner covariances as weights and without (every corner alike)."""
+    board, one held frame per pose) through the rig's radtan lens (model k1k2p1p2) and through a fisheye
+    (Kannala-Brandt, 150-200 deg): errors of fx, fy, cx, cy and the first two lens parameters against the
+    truth and |error| / sigma, with the detector's corner covariances as weights and without."""
+    from dataclasses import replace as dc_replace
+
     from edgecal.calibration.assign import assign
     from edgecal.calibration.views import corner_set
     from edgecal.synth.handheld import handheld_rig, handheld_sequence
+    from edgecal.synth.scenes import random_camera
 
-    out: dict = {"sets": 0, "weighted": [], "unweighted": []}
-    for seed in range(n_sets):
-        rig = handheld_rig([seed, 31], (640, 480), stereo=False)
-        target = planar_target(rig.board.cols, rig.board.rows, rig.board.square_mm, name=rig.board.name)
-        views = []
-        for fr in handheld_sequence([seed, 31], rig, n_poses=n_poses, hold_frames=1, move_frames=0,
-                                    photometric=photometric):
-            a = assign(edgecal.detect(fr.left.image, target), target)
-            if a is not None:
-                views.append(corner_set(target, list(a.corners.keys), a.corners.image_px, a.corners.image_cov_px2))
-        if len(views) < 6:
-            continue
-        out["sets"] += 1
-        truth = {"fx": rig.left.K[0, 0], "fy": rig.left.K[1, 1], "cx": rig.left.K[0, 2], "cy": rig.left.K[1, 2],
-                 "k1": rig.left.dist[0], "k2": rig.left.dist[1]}
-        for key, vs in (("weighted", views), ("unweighted", [CornerSet(v.object_mm, v.image_px, v.keys) for v in views])):
+    out: dict = {}
+    for lens, distortion in (("radtan", "k1k2p1p2"), ("fisheye", "fisheye")):
+        res: dict = {"sets": 0, "weighted": [], "unweighted": []}
+        out[lens] = res
+        for seed in range(n_sets):
+            rig = handheld_rig([seed, 31], (640, 480), stereo=False)
+            if lens == "fisheye":
+                rig = dc_replace(rig, left=random_camera(np.random.default_rng([seed, 32]), (640, 480),
+                                                         distortion="fisheye"))
+            target = planar_target(rig.board.cols, rig.board.rows, rig.board.square_mm, name=rig.board.name)
+            views = []
             try:
-                cal = calibrate_planar(vs, None, (640, 480), RefineOptions(distortion="k1k2p1p2"))
-            except edgecal.errors.EdgecalError as exc:
-                print(f"planar seed {seed} {key}: edgecal failed: {exc}", file=sys.stderr)
+                for fr in handheld_sequence([seed, 31], rig, n_poses=n_poses, hold_frames=1, move_frames=0,
+                                            photometric=photometric):
+                    a = assign(edgecal.detect(fr.left.image, target), target)
+                    if a is not None:
+                        views.append(corner_set(target, list(a.corners.keys), a.corners.image_px,
+                                                a.corners.image_cov_px2))
+            except ValueError as exc:            # the board does not fit this camera's view
+                print(f"planar {lens} seed {seed}: {exc}", file=sys.stderr)
                 continue
-            cam, std = cal.cameras[0], cal.camera_std[0]
-            est = {"fx": cam.camera_matrix[0, 0], "fy": cam.camera_matrix[1, 1], "cx": cam.camera_matrix[0, 2],
-                   "cy": cam.camera_matrix[1, 2], "k1": cam.dist_coeffs[0], "k2": cam.dist_coeffs[1]}
-            out[key].append({"focal_pct": 50 * (abs(est["fx"] / truth["fx"] - 1) + abs(est["fy"] / truth["fy"] - 1)),
-                             "pp_px": float(np.hypot(est["cx"] - truth["cx"], est["cy"] - truth["cy"])),
-                             "k1_abs": abs(est["k1"] - truth["k1"]), "rms_px": cal.rms_px,
-                             "z": [float(abs(est[n] - truth[n]) / std[n]) for n in truth]})
+            if len(views) < 6:
+                continue
+            res["sets"] += 1
+            truth = rig.left
+            names = ("fx", "fy", "cx", "cy") + truth.param_names[:2]
+            true = dict(zip(truth.intrinsic_names, truth.intrinsics))
+            for key, vs in (("weighted", views),
+                            ("unweighted", [CornerSet(v.object_mm, v.image_px, v.keys) for v in views])):
+                try:
+                    cal = calibrate_planar(vs, None, (640, 480), RefineOptions(distortion=distortion))
+                except edgecal.errors.EdgecalError as exc:
+                    print(f"planar {lens} seed {seed} {key}: edgecal failed: {exc}", file=sys.stderr)
+                    continue
+                cam, std = cal.cameras[0], cal.camera_std[0]
+                est = dict(zip(cam.intrinsic_names, cam.intrinsics))
+                res[key].append({"focal_pct": 50 * (abs(est["fx"] / true["fx"] - 1) + abs(est["fy"] / true["fy"] - 1)),
+                                 "pp_px": float(np.hypot(est["cx"] - true["cx"], est["cy"] - true["cy"])),
+                                 "rms_px": cal.rms_px,
+                                 "z": [float(abs(est[n] - true[n]) / std[n]) for n in names]})
     return out
 
 
 def print_planar(res: dict) -> None:
-    print(f"\n== planar mono, {res['sets']} rendered hand-held sessions (640x480, 9x6 board, one frame per pose)")
-    for key in ("weighted", "unweighted"):
-        rows = res[key]
-        if not rows:
-            continue
-        z = np.concatenate([r["z"] for r in rows])
-        print(f"{key:<11} focal {np.median([r['focal_pct'] for r in rows]):.4f} %, principal point "
-              f"{np.median([r['pp_px'] for r in rows]):.3f} px, k1 {np.median([r['k1_abs'] for r in rows]):.4f}, "
-              f"RMS {np.median([r['rms_px'] for r in rows]):.3f} px; |error| / sigma over fx fy cx cy k1 k2: "
-              f"median {np.median(z):.2f}, p90 {np.percentile(z, 90):.2f} (consistent: 0.67, 1.64)")
+    for lens, r in res.items():
+        print(f"\n== planar mono, {lens} lens, {r['sets']} rendered hand-held sessions (640x480, 9x6 board, "
+              f"one frame per pose)")
+        for key in ("weighted", "unweighted"):
+            rows = r[key]
+            if not rows:
+                continue
+            z = np.concatenate([x["z"] for x in rows])
+            print(f"{key:<11} focal {np.median([x['focal_pct'] for x in rows]):.4f} %, principal point "
+                  f"{np.median([x['pp_px'] for x in rows]):.3f} px, RMS {np.median([x['rms_px'] for x in rows]):.3f} px; "
+                  f"|error| / sigma over fx fy cx cy and two lens parameters: median {np.median(z):.2f}, "
+                  f"p90 {np.percentile(z, 90):.2f} (consistent: 0.67, 1.64)")
 
 
 def print_synthetic(res: dict) -> None:
