@@ -78,7 +78,7 @@ def test_provenance_corners_file_and_resolve(views, tmp_path, capsys):
     assert info["camera_name"] == "stereo_right"
     # one row per corner: view, camera, file, board, col, row, x, y (+ a row for the view with no board)
     rows = [r for r in corners_path(out).read_text().splitlines() if not r.startswith("#")]
-    assert rows[0] == "view,camera,file,board,col,row,x,y"
+    assert rows[0] == "view,camera,file,board,col,row,x,y,cov_xx,cov_xy,cov_yy"
     assert len(rows) == 1 + 11 * 2 * 54 + 2
     # re-solve from the corners file alone, no images needed
     for p in (d / "left").iterdir():

@@ -59,3 +59,28 @@ def test_a_noisy_corner_is_not_an_outlier_when_its_covariance_says_so() -> None:
     cam, views = _views(np.random.default_rng(9))
     cal = calibrate_planar(views, None, SIZE, RefineOptions(distortion="k1k2"))
     assert len(cal.dropped) <= 2, cal.dropped
+
+
+def test_corners_file_keeps_covariances_and_names_a_bad_one(tmp_path) -> None:
+    """NAME.corners.csv carries each corner's covariance (a re-solve weighs as the first solve did); a row
+    whose covariance is not positive definite is refused naming its line."""
+    import pytest
+
+    from edgecal.calibration.views import View, corners_text, read_corners
+    from edgecal.errors import ConfigError
+
+    target = planar_target(9, 6, 25.0)
+    _cam, views = _views(np.random.default_rng(2), n=2)
+    cs = [CornerSet(v.object_mm, v.image_px, tuple((target.boards[0].name, c, r) for _b, c, r in v.keys),
+                    v.image_cov_px2) for v in views]
+    path = tmp_path / "rig.corners.csv"
+    path.write_text(corners_text([View(f"v{i}.png", (f"v{i}.png",)) for i in range(2)], [cs], SIZE, target))
+    back = read_corners(path, target)
+    assert np.allclose(back.corners[0][1].image_cov_px2, cs[1].image_cov_px2, rtol=1e-5)
+    lines = path.read_text().splitlines()
+    fields = lines[5].split(",")
+    fields[-1] = "-1"
+    lines[5] = ",".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError, match="line 6: the covariance"):
+        read_corners(path, target)

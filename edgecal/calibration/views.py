@@ -33,6 +33,9 @@ from edgecal.targets import Target
 
 CORNERS_FORMAT = "edgecal-corners/1"
 CORNER_COLUMNS = ("view", "camera", "file", "board", "col", "row", "x", "y")
+# The detector's corner covariance (px^2), written after the corner so that a re-solve weighs the corners
+# as the first solve did; files without these columns still read (every corner then weighs alike).
+COVARIANCE_COLUMNS = ("cov_xx", "cov_xy", "cov_yy")
 
 
 @dataclass(frozen=True)
@@ -100,14 +103,16 @@ def corners_text(views: list[View], corners: list[list[CornerSet]], image_size: 
     out.write(f"# {CORNERS_FORMAT}\n# image_size: {int(image_size[0])} {int(image_size[1])}\n"
               f"# cameras: {' '.join(names)}\n# target: {target.name}\n")
     w = csv.writer(out, lineterminator="\n")
-    w.writerow(CORNER_COLUMNS)
+    w.writerow(CORNER_COLUMNS + COVARIANCE_COLUMNS)
     for v, view in enumerate(views):
         for c, cam in enumerate(names):
             cs = corners[c][v]
             if not len(cs):
-                w.writerow([view.name, cam, view.files[c], "", "", "", "", ""])
-            for (b, col, row), (x, y) in zip(cs.keys, cs.image_px):
-                w.writerow([view.name, cam, view.files[c], b, col, row, f"{x:.4f}", f"{y:.4f}"])
+                w.writerow([view.name, cam, view.files[c], "", "", "", "", "", "", "", ""])
+            covs = cs.image_cov_px2 if cs.image_cov_px2 is not None else [None] * len(cs)
+            for (b, col, row), (x, y), cov in zip(cs.keys, cs.image_px, covs):
+                var = ["", "", ""] if cov is None else [f"{cov[0, 0]:.6g}", f"{cov[0, 1]:.6g}", f"{cov[1, 1]:.6g}"]
+                w.writerow([view.name, cam, view.files[c], b, col, row, f"{x:.4f}", f"{y:.4f}", *var])
     return out.getvalue()
 
 
@@ -118,6 +123,21 @@ class CornersFile:
     views: list[View]
     corners: list[list[CornerSet]]
     image_size: tuple[int, int]
+
+
+def _covariance(row: dict, where: str) -> list[list[float]] | None:
+    """The corner's 2x2 covariance from a row's cov_* columns; None when they are absent or empty."""
+    text = [row.get(k) or "" for k in COVARIANCE_COLUMNS]
+    if not all(text):
+        return None
+    try:
+        xx, xy, yy = (float(v) for v in text)
+    except ValueError:
+        raise ConfigError(f"{where}: cov_xx,cov_xy,cov_yy must be numbers") from None
+    if not (np.isfinite([xx, xy, yy]).all() and xx > 0 and yy > 0 and xx * yy > xy * xy):
+        raise ConfigError(f"{where}: the covariance ({text[0][:12]}, {text[1][:12]}, {text[2][:12]}) is not "
+                          f"positive definite")
+    return [[xx, xy], [xy, yy]]
 
 
 def read_corners(path: str | Path, target: Target) -> CornersFile:
@@ -154,11 +174,12 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
     if cams not in (("camera",), CAMERA_NAMES):
         raise InputError(f"{p}: '# cameras:' must be 'camera' or 'left right' (got {header['cameras'][:40]!r})")
     reader = csv.DictReader(lines[n_head:])
-    if tuple(reader.fieldnames or ()) != CORNER_COLUMNS:
-        raise InputError(f"{p}: line {n_head + 1} must be the column names {','.join(CORNER_COLUMNS)}")
+    if tuple(reader.fieldnames or ()) not in (CORNER_COLUMNS, CORNER_COLUMNS + COVARIANCE_COLUMNS):
+        raise InputError(f"{p}: line {n_head + 1} must be the column names {','.join(CORNER_COLUMNS)} "
+                         f"(optionally followed by {','.join(COVARIANCE_COLUMNS)})")
     order: list[str] = []
     files: dict[str, dict[str, str]] = {}
-    rows: dict[tuple[str, str], tuple[list[tuple[str, int, int]], list[tuple[float, float]]]] = {}
+    rows: dict[tuple[str, str], tuple[list[tuple[str, int, int]], list[tuple[float, float]], list]] = {}
     for k, row in enumerate(reader):
         where = f"{p}: line {n_head + 2 + k}"
         view, cam = row["view"] or "", row["camera"] or ""
@@ -168,7 +189,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
             order.append(view)
             files[view] = {}
         files[view][cam] = row["file"] or ""
-        keys, px = rows.setdefault((view, cam), ([], []))
+        keys, px, covs = rows.setdefault((view, cam), ([], [], []))
         if not row["board"]:
             continue
         try:
@@ -185,6 +206,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
                               f"({board.cols}x{board.rows} inner corners)")
         keys.append((board.name, col, r))
         px.append((x, y))
+        covs.append(_covariance(row, where))
     if not order:
         raise InputError(f"{p}: the corners file lists no view")
     views, corners = [], [[] for _ in cams]
@@ -194,6 +216,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
             raise ConfigError(f"{p}: view {name[:60]!r} has no row for the {missing[0]} camera")
         views.append(View(name, tuple(files[name][c] for c in cams)))
         for c, cam in enumerate(cams):
-            keys, px = rows[(name, cam)]
-            corners[c].append(corner_set(target, keys, np.array(px, dtype=np.float64)))
+            keys, px, covs = rows[(name, cam)]
+            cov = np.array(covs, dtype=np.float64).reshape(-1, 2, 2) if covs and all(v is not None for v in covs) else None
+            corners[c].append(corner_set(target, keys, np.array(px, dtype=np.float64), cov))
     return CornersFile(views, corners, (w, h))

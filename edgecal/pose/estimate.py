@@ -121,7 +121,6 @@ def _fit_covariance(J: np.ndarray, res: np.ndarray, views: list[CameraView], tl:
     return model_covariance(J, cov_px2, groups, basis, var)
 
 
-
 def _pnp(view: CameraView) -> tuple[np.ndarray, np.ndarray] | None:
     """T_cam_robot from one camera's corners (SQPnP handles planar and non-planar layouts)."""
     if view.n < 4:
