@@ -158,6 +158,21 @@ def test_unknown_boards_are_ignored() -> None:
     assert pose.valid and "other" not in pose.boards
 
 
+def test_a_board_seen_twice_in_one_image_is_left_out() -> None:
+    """A second board of the same size under the same name (the detector's copy 1) is not mixed in: that
+    board's corners are left out of the image it appears twice in, and the pose comes from the rest."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    first = left[0]
+    elsewhere = Detection(first.board, first.corners + 40.0, first.ids, first.quality, first.grid, copy=1)
+    pose = estimate_pose(left + [elsewhere], right, target, cams)
+    clean = estimate_pose(left[1:], right, target, cams)
+    assert pose.valid and clean.valid
+    assert pose.n_left == clean.n_left and not pose.rejected     # left out as ambiguous, not fitted as a misfit
+    assert abs(pose.rms_px - clean.rms_px) < 1e-9
+
+
 @pytest.mark.parametrize("scale", ["noise", "residual"])
 def test_covariance_matches_monte_carlo_spread(scale: str) -> None:
     """With Gaussian corner noise of the configured sigma, the predicted covariance matches the spread.

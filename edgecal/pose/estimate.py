@@ -30,13 +30,23 @@ SHARED_FLOOR_PX = 0.0
 SHARED_FRACTION = 0.15
 
 
+def unambiguous_detections(detections: Sequence[Detection], target: Target) -> list[Detection]:
+    """The detections of boards the target knows that are seen once in the image.
+
+    A board found twice in one image (``copy`` 1, 2, ...: another board of the same size) cannot say which of
+    the two is the robot's: both are left out, rather than mixing their corners under one name.
+    """
+    names = {b.name for b in target.boards}
+    seen: dict[str, int] = {}
+    for det in detections:
+        seen[det.board] = seen.get(det.board, 0) + 1
+    return [det for det in detections if det.board in names and seen[det.board] == 1]
+
+
 def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[str, int, int], np.ndarray]:
     """(board, col, row) -> pixel (2,) for every usable detected corner of a board the target knows."""
-    names = {b.name for b in target.boards}
     table: dict[tuple[str, int, int], np.ndarray] = {}
-    for det in detections:
-        if det.board not in names:
-            continue
+    for det in unambiguous_detections(detections, target):
         for (c, r), px, ok in zip(np.asarray(det.ids).reshape(-1, 2), np.asarray(det.corners).reshape(-1, 2),
                                   det.usable()):
             if ok:
@@ -46,10 +56,9 @@ def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[
 
 def corner_covariances(detections: Sequence[Detection], target: Target) -> dict[tuple[str, int, int], np.ndarray]:
     """(board, col, row) -> the detector's 2x2 covariance (px^2) of every usable corner that has one."""
-    names = {b.name for b in target.boards}
     table: dict[tuple[str, int, int], np.ndarray] = {}
-    for det in detections:
-        if det.board not in names or det.covariance is None:
+    for det in unambiguous_detections(detections, target):
+        if det.covariance is None:
             continue
         for (c, r), cov, ok in zip(np.asarray(det.ids).reshape(-1, 2), det.covariance, det.usable()):
             if ok:
