@@ -86,6 +86,7 @@ def test_record_sink_writes_ros_pose_tf_and_status(sequence: tuple[Path, dict], 
     poses, tfs, infos = log["/edgecal/pose"], log["/tf"], log["/edgecal/pose_json"]
     assert len(infos) == N_FRAMES and len(poses) == len(tfs) == sum(m["valid"] for _, m in infos) == N_FRAMES
     assert log["/edgecal/status"][-1][1]["state"] == "stopping"
+    assert log["/edgecal/status"][-1][1]["sinks"] == {"mcap": {"dropped": 0, "failures": 0}}
     for (t_log, p), (_, tf), (_, info), frame in zip(poses, tfs, infos, truth["frames"]):
         assert p.header.frame_id == "cam_rig" and info["frame_id"] == "cam_rig"
         assert info["child_frame_id"] == "base_link" and tf.transforms[0].child_frame_id == "base_link"
@@ -230,3 +231,33 @@ def test_bad_output_fields_are_named(sequence: tuple[Path, dict], tmp_path: Path
     cfg = _config(tmp_path, folder, publish)
     with pytest.raises(ConfigError, match=f"field '{field}'"):
         load_live_config(cfg)
+
+
+def test_reload_moves_the_log_and_keeps_the_old_one_on_a_bad_path(sequence: tuple[Path, dict], tmp_path: Path) -> None:
+    import threading
+    folder, _ = sequence
+    first, second = tmp_path / "first.mcap", tmp_path / "second.mcap"
+    cfg = _config(tmp_path, folder, {"record": {"path": str(first), "flush_s": 0.1}})
+    doc = yaml.safe_load(cfg.read_text())
+    doc["source"]["loop"] = True
+    doc["loop"]["stop_at_end"] = False
+    cfg.write_text(yaml.safe_dump(doc))
+    loop = LiveLoop(load_live_config(cfg))
+    th = threading.Thread(target=loop.run)
+    th.start()
+    try:
+        assert wait_until(lambda: len(read_log(first).get("/edgecal/pose", [])) >= 2, 60.0)
+        doc["publish"]["record"] = {"path": "/proc/no/such/dir/x.mcap"}      # cannot be created: kept running
+        cfg.write_text(yaml.safe_dump(doc))
+        loop.request_reload()
+        assert wait_until(lambda: loop.stats.reload_failures == 1, 20.0)
+        doc["publish"]["record"] = {"path": str(second), "flush_s": 0.1}
+        cfg.write_text(yaml.safe_dump(doc))
+        loop.request_reload()
+        assert wait_until(lambda: second.exists() and len(read_log(second).get("/edgecal/pose", [])) >= 2, 60.0)
+    finally:
+        loop.request_stop()
+        th.join(20)
+    assert not th.is_alive()
+    with first.open("rb") as f:                        # the first log was finished when it was replaced
+        assert make_reader(f).get_summary() is not None

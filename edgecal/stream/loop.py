@@ -506,6 +506,8 @@ class LiveLoop:
                  figures["dropped_frames"], figures["detection_failures"], figures["corrupt_frames"],
                  figures["poses_invalid"], f" ({self._last_message})" if self._last_message else "")
         figures["source"] = self.config.source.uri
+        if self._sinks:     # what the MCAP log / Foxglove server dropped or failed on (a stalled disk shows here)
+            figures["sinks"] = {s.name: {"dropped": s.dropped, "failures": s.failures} for s in self._sinks}
         with self._io:
             if self._publisher is None and not self._aborted and self.state != "stopping":
                 self._rebind()
