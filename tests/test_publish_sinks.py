@@ -246,7 +246,7 @@ def test_reload_moves_the_log_and_keeps_the_old_one_on_a_bad_path(sequence: tupl
     th = threading.Thread(target=loop.run)
     th.start()
     try:
-        assert wait_until(lambda: len(read_log(first).get("/edgecal/pose", [])) >= 2, 60.0)
+        assert wait_until(lambda: first.exists() and len(read_log(first).get("/edgecal/pose", [])) >= 2, 60.0)
         doc["publish"]["record"] = {"path": "/proc/no/such/dir/x.mcap"}      # cannot be created: kept running
         cfg.write_text(yaml.safe_dump(doc))
         loop.request_reload()
