@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from edgecal.drivers.base import Frame, StereoFrame
-
+from edgecal.drivers.recording import recording_layout
 from edgecal.errors import InputError
 from edgecal.mcap_writer import McapLogWriter
 from edgecal.ros_messages import compressed_image_message, image_message
@@ -55,11 +55,7 @@ class McapRecorder:
 
     def add(self, item: Frame | StereoFrame) -> None:
         """Append one frame or stereo pair (a recording holds one kind only)."""
-        layout = "stereo" if isinstance(item, StereoFrame) else "mono"
-        if self.layout is None:
-            self.layout = layout
-        elif layout != self.layout:
-            raise InputError(f"{self.out}: a {self.layout} recording cannot take a {layout} frame")
+        self.layout = recording_layout(self.layout, item, self.out)
         if isinstance(item, StereoFrame):
             self._write(LEFT_TOPIC, item.left, "left")
             self._write(RIGHT_TOPIC, item.right, "right")

@@ -47,6 +47,14 @@ def _frame_entry(frame: Frame, file: str) -> dict[str, Any]:
             "camera_id": frame.camera_id, "exposure_us": frame.exposure_us, "gain_db": frame.gain_db}
 
 
+def recording_layout(layout: str | None, item: Frame | StereoFrame, out: Path) -> str:
+    """The layout (``mono``/``stereo``) of a recording after adding ``item``: a recording holds one kind only."""
+    kind = "stereo" if isinstance(item, StereoFrame) else "mono"
+    if layout is not None and kind != layout:
+        raise InputError(f"{out}: a {layout} recording cannot take a {kind} frame")
+    return kind
+
+
 class Recorder:
     """Writes frames (or stereo pairs) into a recording folder; ``close()`` writes the final manifest.
 
@@ -88,11 +96,7 @@ class Recorder:
 
     def add(self, item: Frame | StereoFrame) -> None:
         """Append one frame or stereo pair (a recording holds one kind only)."""
-        layout = "stereo" if isinstance(item, StereoFrame) else "mono"
-        if self.layout is None:
-            self.layout = layout
-        elif layout != self.layout:
-            raise InputError(f"{self.out}: a {self.layout} recording cannot take a {layout} frame")
+        self.layout = recording_layout(self.layout, item, self.out)
         i = len(self.entries)
         if isinstance(item, StereoFrame):
             entry = {"left": _frame_entry(item.left, self._write_image("left", i, item.left)),
