@@ -22,11 +22,11 @@ from typing import Any, Iterator
 
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.replay import DEFAULT_FPS, Pacer
-from edgecal.drivers.ros_images import IMAGE_TYPES, image_from_msg, short, stamp_ns
+from edgecal.drivers.ros_images import IMAGE_TYPES, image_from_msg, stamp_ns
 from edgecal.drivers.spec import SourceSpec
 from edgecal.drivers.stereo import TimestampPairer
 
-from edgecal.errors import DeviceError, InputError
+from edgecal.errors import DeviceError, InputError, quote
 
 
 class LogCorrupt(Exception):
@@ -92,7 +92,7 @@ def check_topics(log: MessageLog, wanted: tuple[str, ...]) -> dict[str, TopicInf
     for topic in wanted:
         info = infos.get(topic)
         if info is None:
-            raise InputError(f"{log.path}: no topic {short(topic)}; {image_topic_list(infos)}")
+            raise InputError(f"{log.path}: no topic {quote(topic)}; {image_topic_list(infos)}")
         if not info.is_image:
             raise InputError(f"{log.path}: topic {topic} holds {info.msgtype}, not images; {image_topic_list(infos)}")
     return infos

@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from edgecal.errors import InputError
+from edgecal.errors import InputError, quote
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
@@ -53,12 +53,6 @@ RAW_ENCODINGS: dict[str, tuple[type, int, int | None]] = {
 COMPRESSED_FORMATS = ("jpeg", "png")
 
 
-def short(value: object, limit: int = 80) -> str:
-    """``repr(value)`` cut to about ``limit`` characters (for error messages)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + "..."
-
-
 def stamp_ns(msg: Any) -> int:
     """The message header's stamp in nanoseconds (builtin_interfaces/Time: sec, nanosec)."""
     stamp = msg.header.stamp
@@ -84,7 +78,7 @@ def image_from_raw(msg: Any, where: str) -> np.ndarray:
     encoding = str(msg.encoding)
     spec = RAW_ENCODINGS.get(encoding) or RAW_ENCODINGS.get(encoding.lower())
     if spec is None:
-        raise InputError(f"{where}: unsupported image encoding {short(encoding)} "
+        raise InputError(f"{where}: unsupported image encoding {quote(encoding)} "
                          f"(supported: {', '.join(RAW_ENCODINGS)})")
     dtype, channels, conversion = spec
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
@@ -112,7 +106,7 @@ def image_from_compressed(msg: Any, where: str) -> np.ndarray:
     """The decoded pixels of a ``sensor_msgs/msg/CompressedImage`` (JPEG or PNG) as grey or BGR."""
     kind = compressed_format(str(msg.format))
     if kind is None:
-        raise InputError(f"{where}: unsupported compressed image format {short(str(msg.format))} "
+        raise InputError(f"{where}: unsupported compressed image format {quote(str(msg.format))} "
                          f"(supported: {', '.join(COMPRESSED_FORMATS)})")
     data = msg.data
     buf = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.view(np.uint8).ravel()
