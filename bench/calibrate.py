@@ -114,9 +114,9 @@ def _score(cams: list[CameraModel], r: np.ndarray, t: np.ndarray, box_pose: Rigi
                      for i in (0, 1)])
     pp = np.mean([np.linalg.norm(c.camera_matrix[:2, 2] - g.camera_matrix[:2, 2]) for c, g in zip(cams, tc)])
     k1 = np.mean([abs(c.dist_coeffs[0] - g.dist_coeffs[0]) for c, g in zip(cams, tc)])
-    l, rr = _common(left, right)
-    est = triangulate(cams[0], cams[1], RigidTransform.from_rt(r, t), l.image_px, rr.image_px)
-    recon = float(np.mean(np.linalg.norm(est - box_pose.apply(l.object_mm), axis=1)))
+    lc, rc = _common(left, right)
+    est = triangulate(cams[0], cams[1], RigidTransform.from_rt(r, t), lc.image_px, rc.image_px)
+    recon = float(np.mean(np.linalg.norm(est - box_pose.apply(lc.object_mm), axis=1)))
     return {"focal_pct": float(focal), "pp_px": float(pp), "k1_abs": float(k1),
             "rot_deg": _angle_deg(r @ truth["R"].T), "baseline_mm": float(np.linalg.norm(t - truth["T"])),
             "rms_px": float(rms), "recon_mm": recon, "ms": ms}
@@ -127,7 +127,8 @@ def run_edgecal(left: CornerSet, right: CornerSet, size: tuple[int, int], truth:
     cal = calibrate_box_stereo(left, right, size, options)
     ms = 1e3 * (time.process_time() - t0)
     s = _score(cal.cameras, cal.rotation, cal.translation_mm, cal.view_poses[0], cal.rms_px, truth, left, right, ms)
-    s["z_fx"] = float(abs(cal.cameras[0].camera_matrix[0, 0] - truth["left"].camera_matrix[0, 0]) / cal.camera_std[0]["fx"])
+    fx_err = abs(cal.cameras[0].camera_matrix[0, 0] - truth["left"].camera_matrix[0, 0])
+    s["z_fx"] = float(fx_err / cal.camera_std[0]["fx"])
     s["z_T"] = float(np.mean(np.abs(cal.translation_mm - truth["T"]) / cal.translation_std_mm))
     # |error| / sigma of every intrinsic (fx, fy, cx, cy, k1 of both cameras) and of T: median over them
     z = []
@@ -138,7 +139,7 @@ def run_edgecal(left: CornerSet, right: CornerSet, size: tuple[int, int], truth:
     z += list(np.abs(cal.translation_mm - truth["T"]) / cal.translation_std_mm)
     s["z_all"] = float(np.median(z))
     s["dropped"] = len(cal.dropped)
-    for side, info in cal.init.items():
+    for info in cal.init.values():
         for m in ("tsai", "dlt"):
             s[f"kept_{m}"] = s.get(f"kept_{m}", 0) + int(bool(info.get("chosen_" + m)))
     return s
@@ -155,9 +156,10 @@ def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: 
                                               lin.camera_matrix.copy(), np.zeros(5), flags=flags)
         cams.append(CameraModel.from_opencv(k, np.ravel(d)[:5]))
         poses.append(RigidTransform(np.ravel(rv[0]), np.ravel(tv[0])))
-    l, r = _common(left, right)
-    out = cv2.stereoCalibrateExtended([l.object_mm.astype(np.float32)], [l.image_px.astype(np.float32).reshape(-1, 1, 2)],
-                                      [r.image_px.astype(np.float32).reshape(-1, 1, 2)],
+    lc, rc = _common(left, right)
+    out = cv2.stereoCalibrateExtended([lc.object_mm.astype(np.float32)],
+                                      [lc.image_px.astype(np.float32).reshape(-1, 1, 2)],
+                                      [rc.image_px.astype(np.float32).reshape(-1, 1, 2)],
                                       cams[0].camera_matrix, cams[0].dist_coeffs, cams[1].camera_matrix,
                                       cams[1].dist_coeffs, size, np.eye(3), np.zeros((3, 1)),
                                       flags=opencv_flags(distortion) | cv2.CALIB_USE_INTRINSIC_GUESS)
@@ -165,7 +167,8 @@ def run_opencv(left: CornerSet, right: CornerSet, size: tuple[int, int], truth: 
     rvecs, tvecs = out[9], out[10]
     ms = 1e3 * (time.process_time() - t0)
     cams = [CameraModel.from_opencv(k1, np.ravel(d1)[:5]), CameraModel.from_opencv(k2, np.ravel(d2)[:5])]
-    return _score(cams, rot, np.ravel(t), RigidTransform(np.ravel(rvecs[0]), np.ravel(tvecs[0])), rms, truth, left, right, ms)
+    box_pose = RigidTransform(np.ravel(rvecs[0]), np.ravel(tvecs[0]))
+    return _score(cams, rot, np.ravel(t), box_pose, rms, truth, left, right, ms)
 
 
 def _linear_errors(cs: CornerSet, size: tuple[int, int], cam: CameraModel) -> dict:
@@ -222,7 +225,8 @@ def synthetic(args: argparse.Namespace) -> dict:
                         print(f"seed {seed} {key}: OpenCV failed: {str(exc).splitlines()[-1]}", file=sys.stderr)
                     if sigma == 0 and source == "exact":
                         break
-    results["linear_starts_0.1px"] = _median_table(linear, ("tsai_focal_pct", "dlt_focal_pct", "tsai_rms_px", "dlt_rms_px"))
+    results["linear_starts_0.1px"] = _median_table(linear,
+                                                   ("tsai_focal_pct", "dlt_focal_pct", "tsai_rms_px", "dlt_rms_px"))
     return results
 
 
@@ -291,7 +295,8 @@ def print_planar(res: dict) -> None:
                 continue
             z = np.concatenate([x["z"] for x in rows])
             print(f"{key:<11} focal {np.median([x['focal_pct'] for x in rows]):.4f} %, principal point "
-                  f"{np.median([x['pp_px'] for x in rows]):.3f} px, RMS {np.median([x['rms_px'] for x in rows]):.3f} px; "
+                  f"{np.median([x['pp_px'] for x in rows]):.3f} px, "
+                  f"RMS {np.median([x['rms_px'] for x in rows]):.3f} px; "
                   f"|error| / sigma over fx fy cx cy and two lens parameters: median {np.median(z):.2f}, "
                   f"p90 {np.percentile(z, 90):.2f} (consistent: 0.67, 1.64)")
 
@@ -321,7 +326,8 @@ def print_synthetic(res: dict) -> None:
         n = len(bucket["edgecal"])
         if n:
             kept = {m: sum(r.get(f"kept_{m}", 0) for r in bucket["edgecal"]) for m in ("tsai", "dlt")}
-            p90 = {m: float(np.percentile([r[m] for r in bucket["edgecal"]], 90)) for m in ("focal_pct", "baseline_mm", "recon_mm")}
+            p90 = {m: float(np.percentile([r[m] for r in bucket["edgecal"]], 90))
+                   for m in ("focal_pct", "baseline_mm", "recon_mm")}
             print(f"{'':<18}edgecal p90: focal {p90['focal_pct']:.3f} %, baseline {p90['baseline_mm']:.3f} mm, "
                   f"recon {p90['recon_mm']:.4f} mm; start kept: tsai {kept['tsai']}, dlt {kept['dlt']} (of {2 * n}); "
                   f"corners dropped per pair (mean) {np.mean([r['dropped'] for r in bucket['edgecal']]):.1f}")
@@ -433,7 +439,8 @@ def ortho3() -> dict | None:
                       "T_std_mm": cal.translation_std_mm.tolist(),
                       "rot_deg_vs_authors": _angle_deg(cal.rotation @ np.array(
                           [[0.9038, -0.2757, 0.3275], [0.2804, 0.9593, 0.0336], [-0.3234, 0.0615, 0.9443]]).T),
-                      "rms_px": cal.rms_px, "recon_mm": cal.reconstruction.mean_mm, "corners": [len(a_l.corners), len(a_r.corners)]}
+                      "rms_px": cal.rms_px, "recon_mm": cal.reconstruction.mean_mm,
+                      "corners": [len(a_l.corners), len(a_r.corners)]}
     return out
 
 
@@ -446,8 +453,9 @@ def print_ortho3(res: dict | None) -> None:
         kl, kr, t, ts = np.array(r["K_left"]), np.array(r["K_right"]), r["T_mm"], r["T_std_mm"]
         print(f"edgecal distortion={model:<5} corners {r['corners']}: K1 f ({kl[0, 0]:.1f}, {kl[1, 1]:.1f}) ± "
               f"{r['std_left']['fx']:.1f} c ({kl[0, 2]:.1f}, {kl[1, 2]:.1f}); K2 f ({kr[0, 0]:.1f}, {kr[1, 1]:.1f}) "
-              f"c ({kr[0, 2]:.1f}, {kr[1, 2]:.1f}); T ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) ± ({ts[0]:.1f}, {ts[1]:.1f}, "
-              f"{ts[2]:.1f}) mm; R differs from the authors' by {r['rot_deg_vs_authors']:.3f} deg; RMS {r['rms_px']:.2f} px; "
+              f"c ({kr[0, 2]:.1f}, {kr[1, 2]:.1f}); T ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) "
+              f"± ({ts[0]:.1f}, {ts[1]:.1f}, {ts[2]:.1f}) mm; "
+              f"R differs from the authors' by {r['rot_deg_vs_authors']:.3f} deg; RMS {r['rms_px']:.2f} px; "
               f"reconstruction {r['recon_mm']:.2f} mm")
 
 
@@ -575,9 +583,10 @@ def lens_models(args: argparse.Namespace) -> dict:
                     std = cal.camera_std[c].get(name, float("nan"))
                     if np.isfinite(std) and std > 0:
                         z.append(abs(est.intrinsics[i] - truth.intrinsics[i]) / std)
-            row["focal_pct"] = float(np.mean([abs(c.fx / g.fx - 1) * 100 for c, g in zip(cal.cameras, (left, right))]))
-            row["pp_px"] = float(np.mean([np.hypot(c.cx - g.cx, c.cy - g.cy) for c, g in zip(cal.cameras, (left, right))]))
-            row["dist_err_max"] = float(max(np.max(np.abs(c.params - g.params)) for c, g in zip(cal.cameras, (left, right))))
+            pairs = list(zip(cal.cameras, (left, right)))
+            row["focal_pct"] = float(np.mean([abs(c.fx / g.fx - 1) * 100 for c, g in pairs]))
+            row["pp_px"] = float(np.mean([np.hypot(c.cx - g.cx, c.cy - g.cy) for c, g in pairs]))
+            row["dist_err_max"] = float(max(np.max(np.abs(c.params - g.params)) for c, g in pairs))
             row["baseline_mm"] = float(np.linalg.norm(cal.translation_mm - rig.tvec))
             zt = np.abs(cal.translation_mm - rig.tvec) / cal.translation_std_mm
             z += list(zt)
@@ -591,7 +600,8 @@ def lens_models(args: argparse.Namespace) -> dict:
 
 
 def print_lens_models(res: dict, views: int) -> None:
-    print(f"\n== lens models: planar stereo, {views} simulated view pairs per calibration (exact projections + 0.1 px), "
+    print(f"\n== lens models: planar stereo, {views} simulated view pairs per calibration "
+          "(exact projections + 0.1 px), "
           "1280x800, 80 mm baseline; medians over draws; |err|/σ over every intrinsic and T")
     keys = ("focal_pct", "pp_px", "dist_err_max", "baseline_mm", "baseline_z_max", "rms_px", "z_median", "ms")
     print(f"{'lens':<10}" + "".join(f"{k:>15}" for k in keys))
@@ -630,7 +640,8 @@ def print_scale(res: list[dict]) -> None:
     print("\n== scale: planar stereo calibration (k1k2p1p2, simulated 9x6 views), one fresh process each; sparse "
           "Jacobian, scipy least_squares")
     for r in res:
-        print(f"{r['pairs']:>5} pairs ({r['corners']} corners): {r['cpu_seconds']:.1f} s CPU ({r['seconds']:.1f} s wall), peak RSS {r['rss_peak_mb']:.0f} MB "
+        print(f"{r['pairs']:>5} pairs ({r['corners']} corners): {r['cpu_seconds']:.1f} s CPU "
+              f"({r['seconds']:.1f} s wall), peak RSS {r['rss_peak_mb']:.0f} MB "
               f"({r['rss_before_mb']:.0f} MB before the calibration), RMS {r['rms_px']:.3f} px, "
               f"focal error {r['focal_pct']:.4f} %")
 

@@ -37,15 +37,14 @@ import sys  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
 import zlib  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Callable  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from edgecal.errors import EdgecalError  # noqa: E402
-from edgecal.fileio import write_atomic  # noqa: E402
 from edgecal.evaluate import (  # noqa: E402
     FoundGrid,
     GroundTruth,
@@ -59,6 +58,7 @@ from edgecal.evaluate import (  # noqa: E402
     score_image,
     truth_targets,
 )
+from edgecal.fileio import write_atomic  # noqa: E402
 from edgecal.images import IMAGE_SUFFIXES, load_grey  # noqa: E402
 from edgecal.targets import Board, Target, planar_target  # noqa: E402
 

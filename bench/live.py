@@ -255,7 +255,8 @@ def detection_times(folder: Path, truth: dict, n: int) -> dict:
         ref.append(time.perf_counter() - t0)
     return {"frames": len(frames), "edgecal_ms": 1000 * float(np.median(ours)),
             "edgecal_tracked_ms": 1000 * float(np.median(tracked)),
-            "opencv_sb_ms": 1000 * float(np.median(ref)), "opencv_over_edgecal": float(np.median(ref) / np.median(ours)),
+            "opencv_sb_ms": 1000 * float(np.median(ref)),
+            "opencv_over_edgecal": float(np.median(ref) / np.median(ours)),
             "opencv_over_tracked": float(np.median(ref) / np.median(tracked))}
 
 
@@ -308,7 +309,8 @@ def main() -> int:
     truth = ensure_sequence(folder, args.frames, seed=seed, photometric=photometric, exposure_ms=args.exposure_ms,
                             lens=args.lens)
     results: dict = {"frames": len(truth["frames"]), "size": "1280x800", "cores": os.cpu_count(),
-                     "scene": args.scene, "covariance_scale": args.covariance_scale, "photometric": args.photometric, "exposure_ms": args.exposure_ms,
+                     "scene": args.scene, "covariance_scale": args.covariance_scale,
+                     "photometric": args.photometric, "exposure_ms": args.exposure_ms,
                      "preload": not args.decode, "load_average_before": os.getloadavg()[0]}
     # The real-time pass is repeated: on a shared machine its tail latency varies from run to run.
     realtime_runs = [summarise(run_loop(folder, out, True, args.endpoint, True, not args.decode,
@@ -334,7 +336,8 @@ def main() -> int:
     print(f"  latency over all {lat.get('n')} poses: median {lat.get('median_ms', float('nan')):.1f} ms, p99 "
           f"{lat.get('p99_ms', float('nan')):.1f} ms; acquisition (first {lat.get('acquisition_frames')} poses) "
           f"up to {lat.get('acquisition_max_ms', float('nan')):.0f} ms; after it ({lat.get('steady_n', 0)} poses): "
-          f"median {lat.get('steady_median_ms', float('nan')):.1f} ms, p99 {lat.get('steady_p99_ms', float('nan')):.1f} ms, "
+          f"median {lat.get('steady_median_ms', float('nan')):.1f} ms, "
+          f"p99 {lat.get('steady_p99_ms', float('nan')):.1f} ms, "
           f"max {lat.get('steady_max_ms', float('nan')):.1f} ms")
     if len(realtime_runs) > 1:
         def spread(key: str) -> str:
@@ -347,20 +350,23 @@ def main() -> int:
     for name, x in (("as fast as possible", f), ("same, tracking off", s)):
         print(f"{name}: {x['fps']:.1f} fps sustained over {x['frames']} frames ({x['tracked_frames']} tracked), "
               f"CPU {x['cpu_percent_of_one_core']:.0f}% of one core ({x['cpu_ms_per_frame']:.1f} CPU ms per frame)")
-    print(f"tracking on / off: {f['fps'] / s['fps']:.1f}x the frame rate, {s['cpu_ms_per_frame'] / f['cpu_ms_per_frame']:.1f}x "
+    print(f"tracking on / off: {f['fps'] / s['fps']:.1f}x the frame rate, "
+          f"{s['cpu_ms_per_frame'] / f['cpu_ms_per_frame']:.1f}x "
           "less CPU per frame")
     for name, x in (("real time", r), ("fast", f), ("tracking off", s)):
         e = x["errors"]
         if "position_mm" not in e:
             print(f"{name}: no valid pose ({e['invalid_reasons']})")
             continue
-        print(f"{name}: pose error ({e['valid']}/{e['poses']} valid): position median {e['position_mm']['median']:.3f} mm "
+        print(f"{name}: pose error ({e['valid']}/{e['poses']} valid): "
+              f"position median {e['position_mm']['median']:.3f} mm "
               f"p95 {e['position_mm']['p95']:.3f} max {e['position_mm']['max']:.3f}; rotation median "
               f"{e['rotation_deg']['median']:.4f} deg p95 {e['rotation_deg']['p95']:.4f} max "
               f"{e['rotation_deg']['max']:.4f}; mean NEES {e['nees_mean']:.1f} (6 = consistent), median "
               f"{e['nees_median']:.1f} (covariance_scale {args.covariance_scale}; target 3-12); RMS error / sigma "
               f"[x y z rx ry rz] {e['rms_error_over_sigma']} (target 0.7-1.4)")
-    print(f"per stereo frame, single thread, {d['frames']} frames: OpenCV SB {d['opencv_sb_ms']:.0f} ms, edgecal search "
+    print(f"per stereo frame, single thread, {d['frames']} frames: OpenCV SB {d['opencv_sb_ms']:.0f} ms, "
+          "edgecal search "
           f"{d['edgecal_ms']:.1f} ms ({d['opencv_over_edgecal']:.0f}x faster), edgecal tracked "
           f"{d['edgecal_tracked_ms']:.1f} ms ({d['opencv_over_tracked']:.0f}x faster)")
     e = r["errors"]

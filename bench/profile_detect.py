@@ -25,8 +25,8 @@ import functools  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections import defaultdict  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 from pathlib import Path  # noqa: E402
-from typing import Callable  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -90,7 +90,7 @@ class StageClock:
                     self._stack[-1] += elapsed
         return timed
 
-    def __enter__(self) -> "StageClock":
+    def __enter__(self) -> StageClock:
         import importlib
         for module_name, name, stage in STAGES:
             module = importlib.import_module(module_name)

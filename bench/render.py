@@ -18,7 +18,7 @@ for _var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MK
 
 import argparse  # noqa: E402
 import time  # noqa: E402
-from typing import Callable  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
@@ -75,18 +75,19 @@ def main() -> int:
     for size in ((640, 480), (1280, 800)):
         tag = f"{size[0]}x{size[1]}"
         rows.append((f"planar_view {tag} (new camera, clutter, normal)",
-                     *timed(lambda k: scenes.planar_view(k, size=size), n)))
+                     *timed(lambda k, size=size: scenes.planar_view(k, size=size), n)))
         rows.append((f"planar_view {tag} (new camera, uniform, clean)",
-                     *timed(lambda k: scenes.planar_view(k, size=size, background="uniform", photometric="clean"), n)))
+                     *timed(lambda k, size=size: scenes.planar_view(k, size=size, background="uniform",
+                                                                    photometric="clean"), n)))
         cam = scenes.random_camera(np.random.default_rng(0), size)
         tgt = planar_target(9, 6, 25.0)
         board = tgt.boards[0]
         poses = [scenes.place_board(np.random.default_rng(k), cam, board, 0.06 * size[0]) for k in range(n + 1)]
         panels = panels_from_target(tgt)
         rows.append((f"render_view {tag} (fixed camera, 9x6 board)",
-                     *timed(lambda k: render_view(cam, panels, poses[k][0], poses[k][1]), n)))
+                     *timed(lambda k, cam=cam, panels=panels, poses=poses: render_view(cam, panels, *poses[k][:2]), n)))
         rows.append((f"  reference: OpenCV 8x warp {tag} (no distortion, no truth)",
-                     *timed(lambda k: opencv_reference(size, 9, 6, 0.06 * size[0], np.array(
+                     *timed(lambda k, size=size: opencv_reference(size, 9, 6, 0.06 * size[0], np.array(
                          [[1.0, 0.1 * np.sin(k), 100.0], [0.05, 1.0, 80.0], [1e-4, 0.0, 1.0]])), n)))
     rows.append(("multi_view 1280x800", *timed(lambda k: scenes.multi_view(k), max(3, n // 3))))
     rows.append(("box_stereo pair 1280x800", *timed(lambda k: scenes.box_stereo(k), max(3, n // 3))))

@@ -182,7 +182,8 @@ def main() -> int:
           f"{loop.stats.reload_failures} failed reloads")
     print(f"RSS {samples[0][2] / 1024:.1f} MB at start, {samples[-1][2] / 1024:.1f} MB at the end; second half "
           f"growth {growth_mb:+.1f} MB, slope {slope:+.2f} kB per 1000 frames")
-    print(f"threads {base_threads} before (after a 3-s warm-up run), {max(s[3] for s in samples)} at most while running, {end_threads} after; "
+    print(f"threads {base_threads} before (after a 3-s warm-up run), "
+          f"{max(s[3] for s in samples)} at most while running, {end_threads} after; "
           f"fds {base_fds} before, {max(s[4] for s in samples)} at most, {end_fds} after"
           + (f"; Python threads left: {', '.join(extra)}" if extra else ""))
     ok = growth_mb < 20 and end_threads <= base_threads and end_fds <= base_fds and loop.stats.errors == 0

@@ -37,6 +37,7 @@ from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
+
 from edgecal.drivers import open_source  # noqa: E402
 
 LOCK = Path("/tmp/edgecal-arv-fake-gv.lock")   # shared with the tests: one fake camera at a time
@@ -86,7 +87,7 @@ def bench_replay_paced(folder: Path, fps: float, n: int) -> None:
     with open_source(f"replay:{folder}?fps={fps:g}") as src:
         t_start = None
         recv, late = [], []
-        for i in range(n):
+        for _ in range(n):
             f = src.read()
             if f is None:
                 break

@@ -15,8 +15,8 @@ the frame reached edgecal.
 from __future__ import annotations
 
 import abc
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -89,7 +89,7 @@ class Source(abc.ABC):
     def close(self) -> None:
         """Stop streaming and release the device; safe to call more than once."""
 
-    def __enter__(self) -> "Source":
+    def __enter__(self) -> Source:
         self.open()
         return self
 

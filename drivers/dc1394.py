@@ -104,7 +104,8 @@ def load_library() -> Any:
     if lib is None:
         raise DeviceError("the IEEE-1394 driver is unavailable: libdc1394 is not installed "
                           "(Debian/Ubuntu: apt-get install libdc1394-25)")
-    P, V, U32, I = ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int
+    # one-letter type names keep the prototype table below readable
+    P, V, U32, I = ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int  # noqa: E741
     protos = {
         "dc1394_new": (P, []), "dc1394_free": (None, [P]),
         "dc1394_camera_enumerate": (I, [P, ctypes.POINTER(ctypes.POINTER(CameraList))]),

@@ -7,7 +7,8 @@ install.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from edgecal.config import ConfigReader
 from edgecal.drivers.base import Source, StereoSource
@@ -45,7 +46,7 @@ def _build(spec: SourceSpec) -> Source:
     raise AssertionError(f"driver {spec.driver} has no builder")  # spec validation lists every driver
 
 
-def open_source(uri_or_config: "str | Mapping[str, Any] | ConfigReader | SourceSpec") -> Source:
+def open_source(uri_or_config: str | Mapping[str, Any] | ConfigReader | SourceSpec) -> Source:
     """A Source for a URI (``replay:PATH``, ``aravis:NAME``, ...) or a validated config section.
 
     The source is not opened yet: use it as a context manager (``with open_source(uri) as src``).

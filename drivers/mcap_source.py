@@ -9,13 +9,9 @@ summary, when there is one, gives the topic list and counts without a scan.
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
-from edgecal.drivers.base import Source
-from edgecal.drivers.robolog import LogCorrupt, LogMessage, MessageLog, TopicInfo, open_log_source
-from edgecal.drivers.ros_images import IMAGE_TYPES, describe_msg
-from edgecal.drivers.spec import SourceSpec
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Schema
@@ -23,6 +19,10 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap_ros2.decoder import DecoderFactory
 from zstandard import ZstdError
 
+from edgecal.drivers.base import Source
+from edgecal.drivers.robolog import LogCorrupt, LogMessage, MessageLog, TopicInfo, open_log_source
+from edgecal.drivers.ros_images import IMAGE_TYPES, describe_msg
+from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import InputError
 from edgecal.fileio import permission_denied
 

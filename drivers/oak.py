@@ -18,10 +18,10 @@ import time
 from typing import Any
 
 import numpy as np
-from edgecal.drivers.base import Frame, StereoFrame, StereoSource
-from edgecal.drivers.spec import SourceSpec
 
 from edgecal.camera import CameraModel, StereoRig
+from edgecal.drivers.base import Frame, StereoFrame, StereoSource
+from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError
 
 DEFAULT_SIZE = (640, 400)

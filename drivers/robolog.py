@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import abc
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.replay import DEFAULT_FPS, Pacer
 from edgecal.drivers.ros_images import IMAGE_TYPES, image_from_msg, stamp_ns
 from edgecal.drivers.spec import SourceSpec
 from edgecal.drivers.stereo import TimestampPairer
-
 from edgecal.errors import DeviceError, InputError, quote
 
 

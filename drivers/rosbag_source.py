@@ -18,14 +18,10 @@ from __future__ import annotations
 import logging
 import sqlite3
 import struct
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
-from edgecal.drivers.base import Source
-from edgecal.drivers.mcap_source import McapLog
-from edgecal.drivers.robolog import LogCorrupt, LogMessage, MessageLog, TopicInfo, open_log_source
-from edgecal.drivers.ros_images import describe_msg
-from edgecal.drivers.spec import SourceSpec
 from mcap.exceptions import McapError
 from rosbags.highlevel import AnyReader, AnyReaderError
 from rosbags.rosbag1 import ReaderError as Ros1ReaderError
@@ -33,6 +29,11 @@ from rosbags.rosbag2 import ReaderError as Ros2ReaderError
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
 
+from edgecal.drivers.base import Source
+from edgecal.drivers.mcap_source import McapLog
+from edgecal.drivers.robolog import LogCorrupt, LogMessage, MessageLog, TopicInfo, open_log_source
+from edgecal.drivers.ros_images import describe_msg
+from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import InputError
 
 # What a broken bag raises inside rosbags: its own errors, and the sqlite/struct/mcap/zstd ones underneath

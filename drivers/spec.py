@@ -37,8 +37,9 @@ or, for two mono cameras::
 from __future__ import annotations
 
 import urllib.parse
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, Mapping
+from typing import Any
 
 import yaml
 
@@ -127,8 +128,8 @@ class SourceSpec:
     driver: str
     target: str = ""
     settings: SourceSettings = field(default_factory=SourceSettings)
-    left: "SourceSpec | None" = None
-    right: "SourceSpec | None" = None
+    left: SourceSpec | None = None
+    right: SourceSpec | None = None
 
     @property
     def uri(self) -> str:
@@ -357,7 +358,7 @@ def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "c
     return SourceSpec(driver, target, settings)
 
 
-def as_spec(uri_or_config: "str | Mapping[str, Any] | ConfigReader | SourceSpec") -> SourceSpec:
+def as_spec(uri_or_config: str | Mapping[str, Any] | ConfigReader | SourceSpec) -> SourceSpec:
     """Accept a URI, a config mapping/ConfigReader or a ready SourceSpec."""
     if isinstance(uri_or_config, SourceSpec):
         return uri_or_config

@@ -82,7 +82,7 @@ class CameraModel:
 
     @staticmethod
     def from_opencv(camera_matrix: np.ndarray, dist_coeffs: np.ndarray, image_size: tuple[int, int] = (0, 0),
-                    lens: str | None = None) -> "CameraModel":
+                    lens: str | None = None) -> CameraModel:
         """From OpenCV's camera matrix and distortion vector.
 
         Without ``lens``, 8 or more coefficients with any of k4..k6 set mean ``rational``, else ``radtan``
@@ -126,12 +126,12 @@ class CameraModel:
         """The ROS camera_info distortion_model name."""
         return ROS_DISTORTION_MODEL[self.lens]
 
-    def with_intrinsics(self, intrinsics: np.ndarray) -> "CameraModel":
+    def with_intrinsics(self, intrinsics: np.ndarray) -> CameraModel:
         """The same lens model and size with new (fx, fy, cx, cy, *params)."""
         v = np.asarray(intrinsics, dtype=np.float64).ravel()
         return CameraModel(v[0], v[1], v[2], v[3], self.lens, v[4:], self.image_size)
 
-    def with_lens(self, lens: str, params: np.ndarray | None = None) -> "CameraModel":
+    def with_lens(self, lens: str, params: np.ndarray | None = None) -> CameraModel:
         """The same focal lengths, principal point and size with another lens model (parameters 0 if not given)."""
         return CameraModel(self.fx, self.fy, self.cx, self.cy, lens,
                            np.zeros(len(LENS_PARAMS[lens])) if params is None else params, self.image_size)

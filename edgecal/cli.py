@@ -12,7 +12,7 @@ import importlib
 import logging
 import re
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from edgecal.errors import EdgecalError
 

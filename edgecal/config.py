@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import importlib.resources
 import math
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping, Sequence
+from typing import Any
 
 import yaml
 
@@ -157,12 +158,12 @@ class ConfigReader:
                 raise self.fail(key, problem)
         return out
 
-    def section(self, key: str, default: Any = _MISSING) -> "ConfigReader":
+    def section(self, key: str, default: Any = _MISSING) -> ConfigReader:
         """The nested mapping at ``key``."""
         value = self.raw(key, default)
         return ConfigReader(value, self.source, self.path(key))
 
-    def sections(self, key: str) -> Iterator["ConfigReader"]:
+    def sections(self, key: str) -> Iterator[ConfigReader]:
         """Each mapping of the non-empty list at ``key``."""
         value = self.raw(key)
         if not isinstance(value, list) or not value:

@@ -21,8 +21,8 @@ import errno
 import os
 import re
 import secrets
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Iterable, Mapping
 
 import cv2
 import numpy as np

@@ -11,9 +11,11 @@ import numpy as np
 
 from edgecal.camera import StereoRig, unproject
 
+_Z_UP = np.array([0.0, 0.0, 1.0])
+_Z_UP.flags.writeable = False   # a shared default argument: read-only so no caller can change it
 
-def look_at(eye: np.ndarray, target: np.ndarray,
-            up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> tuple[np.ndarray, np.ndarray]:
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = _Z_UP) -> tuple[np.ndarray, np.ndarray]:
     """Pose (R_cam_world, t_cam_world) of a camera at ``eye`` looking at ``target`` (any one unit).
 
     ``up`` (world frame) appears upwards in the image (camera y points down, so y ~ -up).

@@ -144,7 +144,7 @@ class McapLogWriter:
         """Finish the file (summary and index written); safe to call twice."""
         self._finish()
 
-    def __enter__(self) -> "McapLogWriter":
+    def __enter__(self) -> McapLogWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -122,7 +122,8 @@ def test_planar_stereo_cli_on_bouguet_pairs(tmp_path, capsys):
     """Planar multi-view through the CLI with edgecal's own detector, on 6 pairs of Bouguet's set."""
     names = ["01", "02", "03", "06", "07", "08"]
     out = tmp_path / "rig.yaml"
-    rc = main(["calibrate", "--board", "9x6", "--square-mm", "30", "--left", *[str(REAL / f"left{n}.jpg") for n in names],
+    rc = main(["calibrate", "--board", "9x6", "--square-mm", "30",
+               "--left", *[str(REAL / f"left{n}.jpg") for n in names],
                "--right", *[str(REAL / f"right{n}.jpg") for n in names], "--out", str(out)])
     assert rc == 0, capsys.readouterr()
     rig = load_rig(out)

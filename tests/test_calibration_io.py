@@ -21,7 +21,8 @@ def stereo_cal():
     pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     rng = np.random.default_rng(1)
     t = box_target()
-    return calibrate_box_stereo(project_target(t, cl, pl, SIZE, 0.1, rng), project_target(t, cr, pr, SIZE, 0.1, rng), SIZE)
+    return calibrate_box_stereo(project_target(t, cl, pl, SIZE, 0.1, rng), project_target(t, cr, pr, SIZE, 0.1, rng),
+                                SIZE)
 
 
 def test_rig_yaml_round_trip_with_opencv(tmp_path, stereo_cal):

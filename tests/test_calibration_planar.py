@@ -22,7 +22,7 @@ def _views(n=8, noise=0.1, seed=0):
     target = planar_target(9, 6, 25.0)
     rng = np.random.default_rng(seed)
     left, right = [], []
-    for i in range(n):
+    for _ in range(n):
         centre = np.array([100.0, 62.5, 0.0]) + rng.normal(0, 30, 3) * [1, 1, 0]
         tilt = np.radians(rng.uniform(-35, 35, 2))
         eye = centre + 480.0 * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])

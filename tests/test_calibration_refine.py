@@ -64,7 +64,8 @@ def test_too_few_corners_for_the_unknowns():
     _, left, _ = _stereo(0.0)
     lin = calibrate_dlt(left.object_mm, left.image_px)
     with pytest.raises(DegenerateInput, match="more corners"):
-        refine([Observation(0, 0, left.object_mm[:6], left.image_px[:6])], [CameraModel.from_opencv(lin.camera_matrix, np.zeros(5))],
+        refine([Observation(0, 0, left.object_mm[:6], left.image_px[:6])],
+               [CameraModel.from_opencv(lin.camera_matrix, np.zeros(5))],
                [RigidTransform.from_rt(lin.rotation, lin.translation)])
 
 
@@ -79,7 +80,8 @@ def test_monte_carlo_reported_std_matches_spread():
     values, stds = [], []
     for _ in range(100):
         img = exact.image_px + rng.normal(0.0, 0.2, exact.image_px.shape)
-        res = refine([Observation(0, 0, exact.object_mm, img)], [CameraModel.from_opencv(lin.camera_matrix, np.zeros(5))],
+        res = refine([Observation(0, 0, exact.object_mm, img)],
+                     [CameraModel.from_opencv(lin.camera_matrix, np.zeros(5))],
                      [RigidTransform.from_rt(lin.rotation, lin.translation)], options=opts)
         values.append(res.values)
         stds.append(res.std)

@@ -10,8 +10,13 @@ import pytest
 
 import edgecal
 from edgecal.detection.candidates import estimate_noise_sigma, smooth_image, smoothing_sigma
-from edgecal.detection.corner_covariance import (REASON_BORDER, REASON_DEGENERATE, REASON_FLAT,
-                                                 corner_covariance, covariance_noise_sigma)
+from edgecal.detection.corner_covariance import (
+    REASON_BORDER,
+    REASON_DEGENERATE,
+    REASON_FLAT,
+    corner_covariance,
+    covariance_noise_sigma,
+)
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.subpixel import refine_corners
 from edgecal.detection.tracking import track_boards

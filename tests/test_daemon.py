@@ -14,7 +14,6 @@ from pathlib import Path
 
 import pytest
 import yaml
-
 from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 from test_stream import Subscriber
 
@@ -45,7 +44,7 @@ class NotifySocket:
         while not self._stop.is_set():
             try:
                 self.received.append(self.sock.recv(4096).decode())
-            except socket.timeout:
+            except TimeoutError:
                 pass
 
     def wait_for(self, line: str, timeout_s: float) -> bool:

@@ -12,12 +12,12 @@ from pathlib import Path
 
 import pytest
 import yaml
-
-from edgecal.config import packaged_config_path
-from edgecal.errors import MESSAGE_MAX_CHARS
 from live_fixtures import free_endpoint, render_robot, write_rig_yaml
 from test_daemon import NotifySocket, start
 from test_stream import Subscriber
+
+from edgecal.config import packaged_config_path
+from edgecal.errors import MESSAGE_MAX_CHARS
 
 # A YAML "billion laughs" of 378 bytes: nine levels of nine aliases in one value, whose repr is 3 GB.
 ALIAS_BOMB = "[&a [lol, lol, lol, lol, lol, lol, lol, lol, lol], " + ", ".join(
@@ -37,7 +37,8 @@ def bad_rigs(truth_rig: dict, good_rig: Path, folder: Path) -> dict[str, Path]:
     rigs["text file"].write_text("this is not a calibration\n")
     rigs["no nodes"].write_text("%YAML:1.0\n---\nfoo: 1\n")
     good = good_rig.read_text()
-    rigs["bad node"].write_text(good.replace("camera_matrix_left: !!opencv-matrix", "camera_matrix_left: abc\nx: !!opencv-matrix"))
+    rigs["bad node"].write_text(good.replace("camera_matrix_left: !!opencv-matrix",
+                                             "camera_matrix_left: abc\nx: !!opencv-matrix"))
     for name, fx in (("nan focal", float("nan")), ("zero focal", 0.0)):
         rig = copy.deepcopy(truth_rig)
         rig["left"]["K"][0][0] = fx

@@ -14,8 +14,14 @@ import edgecal
 from edgecal.detection.candidates import prepare_image
 from edgecal.detection.grouping import CROSS_RATIO_EQUAL_STEPS, cross_ratio, group_grids
 from edgecal.detection.params import DetectorParams, params_from_mapping
-from edgecal.detection.probe import (EDGE_ACROSS_RAY, EDGE_MAGNITUDE, M_FIRST_SIGN, probe_candidates,
-                                     probe_profile_reference, probe_profiles)
+from edgecal.detection.probe import (
+    EDGE_ACROSS_RAY,
+    EDGE_MAGNITUDE,
+    M_FIRST_SIGN,
+    probe_candidates,
+    probe_profile_reference,
+    probe_profiles,
+)
 from edgecal.errors import ConfigError, InputError
 from edgecal.evaluate import FoundGrid, corner_rms, ground_truth_from_mapping, score_image
 from edgecal.synth.photometric import CLEAN
@@ -364,8 +370,14 @@ def test_dedupe_in_order_matches_a_plain_greedy_pass() -> None:
 
 
 def test_chess_filter_keeps_board_corners_and_drops_noise() -> None:
-    from edgecal.detection.candidates import (chess_filter, chess_ring, chess_thresholds, estimate_noise_sigma,
-                                              smooth_image, smoothing_sigma)
+    from edgecal.detection.candidates import (
+        chess_filter,
+        chess_ring,
+        chess_thresholds,
+        estimate_noise_sigma,
+        smooth_image,
+        smoothing_sigma,
+    )
     from edgecal.detection.detector import CHESS_RADII_PX
     from edgecal.synth.scenes import hard_view
 

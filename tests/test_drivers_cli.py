@@ -8,8 +8,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from driver_frames import render_frame
+
 from edgecal.cli import main
 from edgecal.drivers import open_source
 
@@ -48,7 +48,8 @@ def test_capture_prints_timestamps_and_detections(board_folder: Path, tmp_path: 
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [r["stamp_ns"] for r in rows] == [0, 40_000_000, 80_000_000]
     assert rows[1]["interval_ms"] == 40.0 and rows[0]["size"] == "320x240"
-    assert all(r["boards"] == [{"board": "chessboard-9x6", "copy": 0, "corners": 54, "of": 54, "complete": True}] for r in rows)
+    board = {"board": "chessboard-9x6", "copy": 0, "corners": 54, "of": 54, "complete": True}
+    assert all(r["boards"] == [board] for r in rows)
     with open_source(f"replay:{tmp_path / 'rec'}?pace=fast") as rec:   # --out wrote a replayable recording
         assert [f.stamp_ns for f in rec] == [0, 40_000_000, 80_000_000]
 
@@ -81,7 +82,8 @@ def test_record_then_replay_is_bit_exact(tmp_path: Path, capsys: pytest.CaptureF
 def test_bad_source_uri_is_one_line(capsys: pytest.CaptureFixture) -> None:
     assert main(["capture", "replay:x?pace=slow"]) == 2
     assert capsys.readouterr().err.strip() == (
-        "edgecal: error: source URI 'replay:x?pace=slow': field 'pace' must be one of recorded, fast, realtime (got 'slow')")
+        "edgecal: error: source URI 'replay:x?pace=slow': "
+        "field 'pace' must be one of recorded, fast, realtime (got 'slow')")
 
 
 def test_sources_without_network(capsys: pytest.CaptureFixture) -> None:

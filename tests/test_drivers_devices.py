@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from edgecal.drivers import open_source
 
+from edgecal.drivers import open_source
 from edgecal.errors import DeviceError
 
 
@@ -107,6 +107,7 @@ def test_depthai_absent_device(depthai_env: None) -> None:
 
 def test_depthai_factory_calibration_conversion(depthai_env: None) -> None:
     import depthai as dai
+
     from edgecal.drivers.oak import factory_calibration
     calib = dai.CalibrationHandler()
     k = [[800.0, 0.0, 640.0], [0.0, 800.0, 400.0], [0.0, 0.0, 1.0]]

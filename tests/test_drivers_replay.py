@@ -9,8 +9,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-
 from driver_frames import ListSource, render_frame
+
 from edgecal.drivers import Frame, StereoFrame, StereoSource, open_source, record
 from edgecal.errors import DeviceError, InputError
 

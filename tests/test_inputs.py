@@ -134,7 +134,7 @@ def test_load_rig_errors_are_edgecal_errors(tmp_path):
     """The daemon's reload relies on this: every problem of a rig file is an EdgecalError."""
     from edgecal.calibration.io import load_rig
     from edgecal.errors import EdgecalError
-    for case, (content, expected) in BROKEN_RIGS.items():
+    for case, (content, _expected) in BROKEN_RIGS.items():
         rig = tmp_path / f"{case}.yaml"
         if isinstance(content, dict):
             write_rig(rig, content)

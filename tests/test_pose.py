@@ -113,8 +113,8 @@ def test_mono_fallback_when_one_camera_sees_nothing() -> None:
     target, cams = robot_target(), stereo_cams()
     R, t = true_pose()
     left, right = render_detections(target, cams, R, t)
-    for l, r, mode in ((left, [], "mono-left"), ([], right, "mono-right")):
-        pose = estimate_pose(l, r, target, cams)
+    for seen_left, seen_right, mode in ((left, [], "mono-left"), ([], right, "mono-right")):
+        pose = estimate_pose(seen_left, seen_right, target, cams)
         assert pose.valid, pose.reason
         assert pose.mode == mode
         assert np.abs(pose.t_m - t).max() < 1e-8

@@ -12,8 +12,15 @@ import zmq
 from edgecal.commands import listen
 from edgecal.errors import ConfigError
 from edgecal.pose import Pose
-from edgecal.publish import (PosePublisher, check_endpoint, decode, encode, is_local_endpoint, pose_message,
-                             status_message)
+from edgecal.publish import (
+    PosePublisher,
+    check_endpoint,
+    decode,
+    encode,
+    is_local_endpoint,
+    pose_message,
+    status_message,
+)
 
 
 def run_listen(argv: list[str]) -> int:

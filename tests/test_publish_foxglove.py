@@ -154,7 +154,6 @@ def test_foxglove_port_in_use_is_one_clear_error(sequence: tuple[Path, dict], tm
 def test_a_slow_client_never_slows_the_sink(sequence: tuple[Path, dict]) -> None:
     """frame() only hands over: with a subscribed client that never reads, frames are dropped, not queued."""
     from edgecal.drivers.base import Frame, StereoFrame
-
     from edgecal.pose.types import Pose
     from edgecal.publish.foxglove_sink import FoxgloveSink
     from edgecal.publish.sink_settings import FoxgloveSettings, OutputSettings

@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from edgecal.drivers import open_source, record
 from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
@@ -22,6 +21,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
+from edgecal.drivers import open_source, record
 from edgecal.errors import ConfigError, InputError
 from edgecal.mcap_writer import McapLogWriter, numbered
 from edgecal.publish.sinks import FrameOutput, Sink, fan_out

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zmq
+from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 from scipy.spatial.transform import Rotation
 
 from edgecal.errors import ConfigError
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.loop import check_image, default_source_factory
-from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 
 N_FRAMES = 4
 
@@ -75,7 +75,9 @@ def test_loop_publishes_poses_matching_truth(sequence: tuple[Path, dict], tmp_pa
     loop = LiveLoop(load_live_config(cfg))
     th, result = run_in_thread(loop)
     try:
-        seen = lambda: {m["seq"] % N_FRAMES for m in sub.of("pose")} == set(range(N_FRAMES))
+        def seen() -> bool:
+            return {m["seq"] % N_FRAMES for m in sub.of("pose")} == set(range(N_FRAMES))
+
         assert sub.wait_for(seen), f"got {len(sub.of('pose'))} poses"
         assert sub.wait_for(lambda: len(sub.of("status")) >= 1)
     finally:

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-
-from edgecal.stream import LiveLoop, load_live_config
 from live_fixtures import free_endpoint, write_rig_yaml
 from test_drivers_aravis import FakeCamera, gv_lock  # noqa: F401  (gv_lock is a fixture)
 from test_stream import Subscriber
+
+from edgecal.stream import LiveLoop, load_live_config
 
 
 def small_rig(path: Path) -> Path:

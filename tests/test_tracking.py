@@ -10,16 +10,22 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from live_fixtures import free_endpoint, render_robot, write_config
 from scipy.spatial.transform import Rotation
 
 from edgecal.detection.tracking import MAX_MOTION_RESIDUAL_PX, track_boards
 from edgecal.detection.types import CornerPrediction
 from edgecal.pose import Pose, estimate_pose
-from edgecal.pose.predict import (MAX_EXTRAPOLATION, MIN_FACING_COS, camera_from_rig, extrapolate_pose, facing_cos,
-                                  predict_corners)
+from edgecal.pose.predict import (
+    MAX_EXTRAPOLATION,
+    MIN_FACING_COS,
+    camera_from_rig,
+    extrapolate_pose,
+    facing_cos,
+    predict_corners,
+)
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.tracker import BoardTracker, TrackingSettings, confirmed_fraction
-from live_fixtures import free_endpoint, render_robot, write_config
 
 N_FRAMES = 3
 

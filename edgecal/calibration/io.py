@@ -31,7 +31,10 @@ from edgecal.fileio import check_outputs, read_input, write_atomic_set
 
 
 def camera_info_paths(rig_path: str | Path, stereo: bool) -> list[Path]:
-    """The ROS camera_info files written beside ``rig_path``: NAME.left/right.camera_info.yaml (or NAME.camera_info.yaml)."""
+    """The ROS camera_info files written beside ``rig_path``.
+
+    NAME.left.camera_info.yaml and NAME.right.camera_info.yaml for a stereo rig, NAME.camera_info.yaml for one camera.
+    """
     p = Path(rig_path)
     stem = p.name[: -len(p.suffix)] if p.suffix else p.name
     names = ("left", "right") if stereo else ("",)

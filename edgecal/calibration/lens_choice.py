@@ -9,8 +9,8 @@ The choice and the reason for each rejected candidate are added to the calibrati
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
-from typing import Callable
 
 import numpy as np
 

@@ -62,10 +62,11 @@ def calibrate_tsai(object_pts: np.ndarray, image_px: np.ndarray,
         rvec = cv2.Rodrigues(rot)[0]
         tvec = np.array([tx, ty, tz])
 
-        # Stage 3: fy, tz, k1 non-linearly with the rest fixed (Tsai's final step).
+        # Stage 3: fy, tz, k1 non-linearly with the rest fixed (Tsai's final step). resid is solved within
+        # this iteration, so its loop variables are the current ones.
         def resid(p: np.ndarray) -> np.ndarray:
             k = np.array([[aspect * p[0], 0, cx], [0, p[0], cy], [0, 0, 1.0]])
-            proj, _ = cv2.projectPoints(obj, rvec, np.array([tx, ty, p[1]]), k,
+            proj, _ = cv2.projectPoints(obj, rvec, np.array([tx, ty, p[1]]), k,  # noqa: B023
                                         np.array([p[2], 0, 0, 0, 0.0]))
             return (proj.reshape(-1, 2) - img).ravel()
 

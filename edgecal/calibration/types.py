@@ -24,7 +24,7 @@ class RigidTransform:
     tvec: np.ndarray
 
     @staticmethod
-    def from_rt(rotation: np.ndarray, translation: np.ndarray) -> "RigidTransform":
+    def from_rt(rotation: np.ndarray, translation: np.ndarray) -> RigidTransform:
         """From a 3x3 rotation matrix and a translation."""
         return RigidTransform(cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel(),
                               np.asarray(translation, dtype=np.float64).ravel().copy())
@@ -54,7 +54,7 @@ class CornerSet:
     def __len__(self) -> int:
         return len(self.keys)
 
-    def take(self, index: list[int] | np.ndarray) -> "CornerSet":
+    def take(self, index: list[int] | np.ndarray) -> CornerSet:
         """The corners at ``index``, covariances included."""
         idx = np.asarray(index, dtype=np.int64)
         cov = None if self.image_cov_px2 is None else self.image_cov_px2[idx]

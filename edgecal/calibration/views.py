@@ -217,6 +217,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
         views.append(View(name, tuple(files[name][c] for c in cams)))
         for c, cam in enumerate(cams):
             keys, px, covs = rows[(name, cam)]
-            cov = np.array(covs, dtype=np.float64).reshape(-1, 2, 2) if covs and all(v is not None for v in covs) else None
+            has_cov = covs and all(v is not None for v in covs)
+            cov = np.array(covs, dtype=np.float64).reshape(-1, 2, 2) if has_cov else None
             corners[c].append(corner_set(target, keys, np.array(px, dtype=np.float64), cov))
     return CornersFile(views, corners, (w, h))

@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
             if msg is None:
                 # Someone else's publisher, another schema, a damaged message: say so briefly, keep listening.
                 print(f"edgecal listen: skipped a message that is not [topic, JSON object] "
-                      f"({len(frames)} frames: {quote(b' '.join(f[:QUOTE_MAX_CHARS] for f in frames[:3]))})", file=sys.stderr, flush=True)
+                      f"({len(frames)} frames: {quote(b' '.join(f[:QUOTE_MAX_CHARS] for f in frames[:3]))})",
+                      file=sys.stderr, flush=True)
                 continue
             print(json.dumps(msg) if args.json else describe_message(msg), flush=True)
             received += 1

@@ -11,12 +11,18 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.probe import (EDGE_ACROSS_RAY, M_ANGLE_ERR, M_CONTRAST, M_SIGN_FRAC, probe_candidates,
-                                     probe_quality, probe_radii)
+from edgecal.detection.probe import (
+    EDGE_ACROSS_RAY,
+    M_ANGLE_ERR,
+    M_CONTRAST,
+    M_SIGN_FRAC,
+    probe_candidates,
+    probe_quality,
+    probe_radii,
+)
 from edgecal.detection.subpixel import FINAL_CRITERIA, SEARCH_CRITERIA, refine_corners
 
 # Where the squares beyond a grid line are sampled, as fractions of one grid step outwards (0.5 = their
@@ -109,7 +115,7 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
     grid step outwards (None: not measurable, e.g. outside the image or too short)."""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
-    ordered = sorted(line, key=lambda l: l[0] * along[0] + l[1] * along[1])
+    ordered = sorted(line, key=lambda uv: uv[0] * along[0] + uv[1] * along[1])
     # Each line point stepped one square outwards, extrapolated along its own grid line (quadratic when two
     # inner points are known: fisheye lenses bend the lines too much for one homography to reach outside).
     outer = []

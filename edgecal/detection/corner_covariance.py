@@ -279,7 +279,8 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)
     det = np.where(ok, a, 1.0)
     # A^-1 for every corner at once.
-    ai = np.stack([st[:, W_AYY], -st[:, W_AXY], -st[:, W_AXY], st[:, W_AXX]], axis=1).reshape(-1, 2, 2) / det[:, None, None]
+    ai = (np.stack([st[:, W_AYY], -st[:, W_AXY], -st[:, W_AXY], st[:, W_AXX]], axis=1).reshape(-1, 2, 2)
+          / det[:, None, None])
     b = np.stack([st[:, W_BXX], st[:, W_BXY], st[:, W_BXY], st[:, W_BYY]], axis=1).reshape(-1, 2, 2)
     cov_noise = noise2 * ai @ b @ ai
     contrast = np.maximum(st[:, W_CONTRAST], 1e-6)

@@ -16,9 +16,19 @@ import math
 import cv2
 import numpy as np
 
-from edgecal.detection.candidates import (chess_filter, chess_ring, chess_thresholds, dedupe_in_order,
-                                          estimate_noise_sigma, gradients, min_eigen_candidates,
-                                          noise_response_floor, smooth_image, smoothing_sigma, snap_to_saddle)
+from edgecal.detection.candidates import (
+    chess_filter,
+    chess_ring,
+    chess_thresholds,
+    dedupe_in_order,
+    estimate_noise_sigma,
+    gradients,
+    min_eigen_candidates,
+    noise_response_floor,
+    smooth_image,
+    smoothing_sigma,
+    snap_to_saddle,
+)
 from edgecal.detection.completion import complete_grid, predict_holes, trim_false_edges
 from edgecal.detection.corner_covariance import corner_covariance
 from edgecal.detection.grouping import group_grids
@@ -56,7 +66,7 @@ def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, 
                             p.min_contrast, p.min_peak_ratio)
 
 
-def _first_pass(level: "_Level", cands: np.ndarray, p: DetectorParams) -> np.ndarray:
+def _first_pass(level: _Level, cands: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Candidates accepted by the probe at r_e or, failing that, at a small or a large radius.
 
     Min-eigenvalue maxima sit 1-3 px off an X-corner (the gradient vanishes at the saddle itself), and the
@@ -185,7 +195,7 @@ def _add_bloomed_boards(grey: np.ndarray, target: Target, p: DetectorParams, deb
     debug.notes.append("overexposed: boards found in the image eroded by 3x3 (white bloomed over the corners)")
 
 
-def add_covariances(detections: list[Detection], level: "_Level") -> None:
+def add_covariances(detections: list[Detection], level: _Level) -> None:
     """Fill in covariance and unusable of ``detections`` (corners refined on ``level``), one call for all."""
     if not detections:
         return
@@ -199,7 +209,7 @@ def add_covariances(detections: list[Detection], level: "_Level") -> None:
         start += len(d.corners)
 
 
-def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, "_Level"]:
+def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, _Level]:
     """The search of detect_debug; also returns the full-resolution level the corners were refined on.
 
     Large images are searched at half resolution first (a quarter of the pixel work). Boards found there are

@@ -347,14 +347,14 @@ def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_con
     return keep
 
 
-def probe_radii(spacing: np.ndarray, params: "DetectorParams") -> np.ndarray:
+def probe_radii(spacing: np.ndarray, params: DetectorParams) -> np.ndarray:
     """Probe radius for each local square size: ``probe_radius_per_spacing`` x spacing, clamped to
     [probe_radius_min_px, probe_radius_max_px]."""
     return np.clip(params.probe_radius_per_spacing * np.asarray(spacing, dtype=np.float64),
                    params.probe_radius_min_px, params.probe_radius_max_px)
 
 
-def probe_quality(measures: np.ndarray, params: "DetectorParams") -> np.ndarray:
+def probe_quality(measures: np.ndarray, params: DetectorParams) -> np.ndarray:
     """Per point in [0, 1]: how cleanly the probe saw a chessboard corner (angle error x contrast, each
     scaled to its threshold in ``params``); 1 is a clean, contrasty saddle."""
     angle = np.clip(1.0 - measures[:, M_ANGLE_ERR] / math.radians(params.angle_diff_max_deg), 0.0, 1.0)

@@ -20,7 +20,7 @@ squares leave cornerSubPix ill-conditioned along them) breaks that map and is dr
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import cv2
 import numpy as np

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -15,7 +15,6 @@ from edgecal.pose.refine import CameraView, model_covariance, pose_covariance, r
 from edgecal.pose.rigid import fit_rigid, is_degenerate
 from edgecal.pose.types import Pose, PoseSettings
 from edgecal.targets import Target
-
 
 # The error the corners of one board in one camera share (estimated from edgecal.synth robot sequences;
 # see the README, "Live pose"): the light field, the blur and the perspective over a board bias its corners
@@ -102,7 +101,8 @@ def board_shared_error(xy: np.ndarray, cov_px2: np.ndarray, groups: np.ndarray) 
     centroid over their RMS distance - and (G, 6) variances (px^2). xy (M, 2) pixels, cov_px2 (M, 2, 2) the
     corners' covariances, groups (M,) their group."""
     n = np.maximum(np.bincount(groups), 1)
-    centroid = np.stack([np.bincount(groups, weights=xy[:, 0]), np.bincount(groups, weights=xy[:, 1])], axis=1) / n[:, None]
+    sums = np.stack([np.bincount(groups, weights=xy[:, 0]), np.bincount(groups, weights=xy[:, 1])], axis=1)
+    centroid = sums / n[:, None]
     d = xy - centroid[groups]
     radius = np.sqrt(np.bincount(groups, weights=np.sum(d * d, axis=1)) / n)
     q = d / np.maximum(radius, 1e-9)[groups][:, None]
@@ -223,8 +223,8 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: Pos
 
     The refinement starts from ``start_pose`` when given (its mode is kept), else from initial_pose, and
     weighs each corner by its covariance in ``covs`` (left, right; corner_covariances), or by
-    settings.corner_noise_px when it has none. After the refinement, single corners that reproject far worse than the rest (corner_outliers) are
-    left out and the pose is refined again from where it is, a few rounds at most.
+    settings.corner_noise_px when it has none. After the refinement, single corners that reproject far worse than
+    the rest (corner_outliers) are left out and the pose is refined again from where it is, a few rounds at most.
     """
     if not tl and not tr:
         return Pose.invalid("no board detected", n_left=0, n_right=0, n_both=0)

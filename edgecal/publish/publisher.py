@@ -158,7 +158,7 @@ class PosePublisher(Sink):
         if self._own_context and not self._ctx.closed:
             self._ctx.term()
 
-    def __enter__(self) -> "PosePublisher":
+    def __enter__(self) -> PosePublisher:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -14,8 +14,9 @@ from __future__ import annotations
 import abc
 import logging
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, Iterable
+from typing import Any
 
 from edgecal.drivers.base import StereoFrame
 from edgecal.pose.types import Pose

@@ -25,7 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-
 from edgecal.camera import StereoRig
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
 from edgecal.detection.params import DetectorParams, load_params
@@ -102,7 +101,8 @@ def _read_pose(r: ConfigReader) -> PoseSettings:
         max_rotation_std_deg=r.number("max_rotation_std_deg", b.max_rotation_std_deg, positive=True))
     return PoseSettings(
         triangulation=r.string("triangulation", d.triangulation, choices=("optimal", "linear")),
-        covariance_scale=r.string("covariance_scale", d.covariance_scale, choices=("model", "max", "residual", "noise")),
+        covariance_scale=r.string("covariance_scale", d.covariance_scale,
+                                  choices=("model", "max", "residual", "noise")),
         corner_noise_px=r.number("corner_noise_px", d.corner_noise_px, positive=True),
         outlier_sigmas=r.number("outlier_sigmas", d.outlier_sigmas, minimum=2.0),
         outlier_min_px=r.number("outlier_min_px", d.outlier_min_px, positive=True),

@@ -15,8 +15,8 @@ The square size in pixels is the *nominal* one: focal length x square_mm / depth
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Iterator
 
 import numpy as np
 
@@ -289,7 +289,7 @@ def _box_face_extents(target: Target, cube_mm: float) -> dict[str, tuple[float, 
 def box_stereo(seed: SeedLike, *, size: tuple[int, int] = (1280, 800), distance_mm: FloatOrRange = (250.0, 350.0),
                baseline_mm: float = 70.0, photometric: Photometric | str = "normal", background: str = "clutter",
                target: Target | None = None, cube_mm: float = 100.0, supersampling: int = 12,
-               border_px: float = 4.0, rig: "RobotRig | None" = None) -> StereoView:
+               border_px: float = 4.0, rig: RobotRig | None = None) -> StereoView:
     """The calibration box seen by a (nearly parallel) stereo rig; world frame = box frame.
 
     The rig looks at the box centre from the octant where all three printed faces are visible, with a

@@ -9,8 +9,8 @@ anything is written, so a refused call writes nothing.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
