@@ -26,7 +26,7 @@ import yaml
 
 from edgecal.calibration.types import Calibration
 from edgecal.camera import LENS_PARAMS, CameraModel, StereoRig
-from edgecal.errors import ConfigError, InputError
+from edgecal.errors import ConfigError, InputError, quote
 from edgecal.fileio import check_outputs, read_input, write_atomic_set
 
 
@@ -274,7 +274,7 @@ class _RigReader:
     def camera(self, sfx: str, size: tuple[int, int]) -> CameraModel:
         lens = self.string("distortion_model" + sfx, "radtan")
         if lens not in LENS_PARAMS:
-            raise self.fail("distortion_model" + sfx, f"is {lens[:40]!r}; known: {', '.join(LENS_PARAMS)}")
+            raise self.fail("distortion_model" + sfx, f"is {quote(lens)}; known: {', '.join(LENS_PARAMS)}")
         k = self.matrix("camera_matrix" + sfx, ((3, 3),))
         if not (k[0, 0] > 0 and k[1, 1] > 0):
             raise self.fail("camera_matrix" + sfx, f"must have positive focal lengths (fx {k[0, 0]:g}, fy {k[1, 1]:g})")

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from edgecal.calibration.types import CAMERA_NAMES, CornerSet
-from edgecal.errors import ConfigError, InputError
+from edgecal.errors import ConfigError, InputError, quote
 from edgecal.fileio import permission_denied
 from edgecal.targets import Target
 
@@ -172,7 +172,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
     except (KeyError, ValueError):
         raise InputError(f"{p}: the header needs '# image_size: W H' and '# cameras: ...'") from None
     if cams not in (("camera",), CAMERA_NAMES):
-        raise InputError(f"{p}: '# cameras:' must be 'camera' or 'left right' (got {header['cameras'][:40]!r})")
+        raise InputError(f"{p}: '# cameras:' must be 'camera' or 'left right' (got {quote(header['cameras'])})")
     reader = csv.DictReader(lines[n_head:])
     if tuple(reader.fieldnames or ()) not in (CORNER_COLUMNS, CORNER_COLUMNS + COVARIANCE_COLUMNS):
         raise InputError(f"{p}: line {n_head + 1} must be the column names {','.join(CORNER_COLUMNS)} "
@@ -184,7 +184,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
         where = f"{p}: line {n_head + 2 + k}"
         view, cam = row["view"] or "", row["camera"] or ""
         if cam not in cams:
-            raise ConfigError(f"{where}: camera {cam[:20]!r} is not one of {' '.join(cams)}")
+            raise ConfigError(f"{where}: camera {quote(cam)} is not one of {' '.join(cams)}")
         if view not in files:
             order.append(view)
             files[view] = {}
@@ -195,7 +195,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
         try:
             board = target.board(row["board"])
         except KeyError:
-            raise ConfigError(f"{where}: board {row['board'][:40]!r} is not in target {target.name!r} "
+            raise ConfigError(f"{where}: board {quote(row['board'])} is not in target {target.name!r} "
                               f"(give the --target/--board the corners were found with)") from None
         try:
             col, r, x, y = int(row["col"]), int(row["row"]), float(row["x"]), float(row["y"])
@@ -213,7 +213,7 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
     for name in order:
         missing = [c for c in cams if c not in files[name]]
         if missing:
-            raise ConfigError(f"{p}: view {name[:60]!r} has no row for the {missing[0]} camera")
+            raise ConfigError(f"{p}: view {quote(name)} has no row for the {missing[0]} camera")
         views.append(View(name, tuple(files[name][c] for c in cams)))
         for c, cam in enumerate(cams):
             keys, px, covs = rows[(name, cam)]
