@@ -1,6 +1,7 @@
 # edgecal: the two commands of the README.
 #   make demo   render data, detect, calibrate, stream pose from a replay
 #   make test   the test suite
+#   make lint   ruff (style, imports, docstrings) and mypy (types); CI runs it before the tests
 # Both create (or reuse) the virtualenv .venv and install what they need, Debian packages included.
 
 PYTHON ?= python3
@@ -10,7 +11,7 @@ PY     := $(VENV)/bin/python
 # PyGObject and pycairo are built from source, so Debian's python3 also needs its headers and venv).
 SYSTEM_PACKAGES ?= aravis-tools aravis-tools-cli gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config libdc1394-25 systemd python3-dev python3-venv
 
-.PHONY: demo test bench system-deps clean
+.PHONY: demo test lint typecheck bench system-deps clean
 
 # order-only: `make demo` builds PyGObject too, so it needs the Debian packages first (without forcing a reinstall)
 $(VENV)/.installed: pyproject.toml | system-deps
@@ -33,6 +34,20 @@ demo: $(VENV)/.installed
 
 test: system-deps $(VENV)/.installed
 	$(PY) -m pytest -q
+
+lint: $(VENV)/.installed
+	$(VENV)/bin/ruff check .
+	@$(MAKE) --no-print-directory typecheck
+
+# mypy follows no import hooks, so it cannot see that drivers/ is installed as edgecal.drivers: it checks a tree of
+# links with the installed layout (build/typecheck/edgecal/, drivers/ inside it; its messages name those paths).
+TYPECHECK := build/typecheck
+typecheck: $(VENV)/.installed
+	@rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)/edgecal
+	@for f in edgecal/*; do ln -s "$(CURDIR)/$$f" $(TYPECHECK)/edgecal/; done
+	@ln -s "$(CURDIR)/drivers" $(TYPECHECK)/edgecal/drivers
+	cd $(TYPECHECK) && $(abspath $(PY)) -m mypy --config-file "$(CURDIR)/pyproject.toml" \
+	  --cache-dir "$(CURDIR)/build/mypy_cache" -p edgecal
 
 bench: $(VENV)/.installed
 	$(PY) -m pip install --quiet -e '.[bench]'

@@ -90,6 +90,7 @@ def image_from_raw(msg: Any, where: str) -> np.ndarray:
         raise InputError(f"{where}: {encoding} image {w}x{h} with step {step} needs {h * max(step, row)} bytes, "
                          f"the message holds {buf.size}")
     rows = buf[:h * step].reshape(h, step)[:, :row]          # drop any row padding
+    pixels: np.ndarray
     if channels == 2:                                          # 4:2:2: two bytes per pixel
         pixels = np.ascontiguousarray(rows).reshape(h, w, 2)
     else:

@@ -23,11 +23,15 @@ import re
 import secrets
 from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 
 from edgecal.errors import InputError
+
+# the file names of write_atomic_set: str, Path or both (a Mapping's key type is invariant)
+_PathT = TypeVar("_PathT", bound="str | Path")
 
 TEMP_SUFFIX = ".edgecal-tmp"
 # .NAME.PID-XXXXXXXX.edgecal-tmp: the PID tells a stale temporary (its writer is gone) from a live one.
@@ -114,7 +118,7 @@ def check_outputs(paths: Iterable[str | Path], force: bool, create_folders: bool
 
 def remove_stale_temps(folder: str | Path) -> list[Path]:
     """Remove the named temporaries in ``folder`` whose writing process no longer runs; return them."""
-    removed = []
+    removed: list[Path] = []
     try:
         names = os.listdir(folder)
     except OSError:
@@ -199,6 +203,7 @@ class _Temp:
                 return
             except FileExistsError:  # created meanwhile by someone else: replace it like any other
                 self.name_for_replace()
+        assert self.name is not None  # name_for_replace set it
         os.replace(self.name, self.path.name, src_dir_fd=self.dir_fd, dst_dir_fd=self.dir_fd)
         self.name = None
 
@@ -218,7 +223,7 @@ class _Temp:
             self.fd = -1
 
 
-def write_atomic_set(files: Mapping[str | Path, bytes], durable: bool = True) -> None:
+def write_atomic_set(files: Mapping[_PathT, bytes], durable: bool = True) -> None:
     """Write several files as one set: every file's temporary is written (and fsynced) before any is renamed.
 
     A crash before the renames leaves all the old files; the renames themselves take microseconds.

@@ -23,14 +23,14 @@ def radial_structure(cal: Calibration, camera: int) -> tuple[float, float]:
     on a fisheye lens) leaves exactly this: residuals that point along the radius and grow towards the rim.
     """
     cam = cal.cameras[camera]
-    q, e = [], []
+    q_views, e_views = [], []
     for cs, res, inl in zip(cal.corners[camera], cal.residuals_px[camera], cal.inliers[camera]):
         if len(cs):
-            q.append(cs.image_px[inl])
-            e.append(res[inl])
-    if not q:
+            q_views.append(cs.image_px[inl])
+            e_views.append(res[inl])
+    if not q_views:
         return 0.0, 0.0
-    q, e = np.concatenate(q), np.concatenate(e)
+    q, e = np.concatenate(q_views), np.concatenate(e_views)
     if len(q) < 4 * RADIAL_BINS:
         return 0.0, 0.0
     d = q - [cam.cx, cam.cy]

@@ -94,7 +94,8 @@ def _corner_set(dets: list[Detection], target: Target, choice: tuple[tuple[Board
         imgs.append(np.asarray(det.corners, dtype=np.float64).reshape(-1, 2)[ok])
         covs.append(None if det.covariance is None else det.covariance[ok])
         keys += [(board.name, int(c), int(r)) for c, r in ids]
-    cov = None if any(c is None for c in covs) else np.concatenate(covs)
+    known = [c for c in covs if c is not None]
+    cov = np.concatenate(known) if len(known) == len(covs) else None
     return CornerSet(np.concatenate(objs), np.concatenate(imgs), tuple(keys), cov)
 
 

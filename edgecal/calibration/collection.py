@@ -112,7 +112,8 @@ def edge_width_px(grey: np.ndarray, cs: CornerSet, target: Target) -> float:
         shear = _shear_sine(grid)
         # both edge directions: motion blur widens only the edges across the motion
         for vertical in (False, True):
-            value = cv2.estimateChessboardSharpness(grey, (board.cols, board.rows), pts, vertical=vertical)[0][0]
+            sharpness = cv2.estimateChessboardSharpness(grey, (board.cols, board.rows), pts, vertical=vertical)[0]
+            value = np.ravel(sharpness)[0]   # a Scalar: (average edge width, min, max, ...)
             # OpenCV answers 9999 when it cannot measure (small squares): no measurement, not a blur
             if np.isfinite(value) and 0 < value < NO_MEASUREMENT:
                 widths.append(float(value) * shear)

@@ -206,7 +206,7 @@ def rectified_pair_figure(left: np.ndarray, right: np.ndarray, cal: Calibration,
     from edgecal.calibration.stereo import rectification_maps
     rect = cal.rectification
     assert rect is not None
-    size = tuple(cal.image_size)
+    size = (cal.image_size[0], cal.image_size[1])
     out = []
     for img, cam, R, P in ((left, cal.cameras[0], rect.r1, rect.p1), (right, cal.cameras[1], rect.r2, rect.p2)):
         mx, my = rectification_maps(cam, R, P, size)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal, overload
 
 import cv2
 import numpy as np
@@ -97,6 +98,8 @@ def rig_yaml(cal: Calibration, provenance: dict | None = None) -> str:
         fs.writeComment(f"std order: {' '.join(cam.intrinsic_names)} (.Nan = fixed)")
         fs.write("intrinsics_std" + sfx, _std_row(std, cam))
     if cal.is_stereo:
+        assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
+        assert cal.rotation_std_rad is not None and cal.translation_std_mm is not None
         fs.write("R", cal.rotation)
         fs.write("T", np.ravel(cal.translation_mm).reshape(3, 1) * 1e-3)
         fs.write("R_std_rad", np.ravel(cal.rotation_std_rad).reshape(3, 1))
@@ -223,6 +226,14 @@ class _RigReader:
     def has(self, name: str) -> bool:
         return not self.fs.getNode(name).empty()
 
+    @overload
+    def matrix(self, name: str, shapes: tuple[tuple[int, int], ...] | None, required: Literal[True] = True,
+               finite: bool = True) -> np.ndarray: ...
+
+    @overload
+    def matrix(self, name: str, shapes: tuple[tuple[int, int], ...] | None, required: bool,
+               finite: bool = True) -> np.ndarray | None: ...
+
     def matrix(self, name: str, shapes: tuple[tuple[int, int], ...] | None, required: bool = True,
                finite: bool = True) -> np.ndarray | None:
         """The node as a float64 matrix of one of ``shapes`` (None: any shape)."""
@@ -334,7 +345,9 @@ def load_rig(path: str | Path) -> RigFile:
         prov = fs.getNode("provenance")
         if not prov.empty() and prov.isMap():
             try:
-                rig.provenance = _read_node(prov)
+                provenance = _read_node(prov)
+                assert isinstance(provenance, dict)  # a map node reads as a dict
+                rig.provenance = provenance
             except (cv2.error, SystemError):
                 raise r.fail("provenance", "cannot be read") from None
         return rig

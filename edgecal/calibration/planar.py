@@ -109,17 +109,18 @@ def _calibrate_fisheye(views: list[CornerSet], image_size: tuple[int, int], dist
     for half_fov in _FISHEYE_HALF_FOV_DEG:
         f = 0.5 * w / np.radians(half_fov)
         cam = CameraModel(f, f, (w - 1) / 2.0, (h - 1) / 2.0, "fisheye", np.zeros(4), image_size)
-        poses = [_view_pose(v, cam) for v in views]
-        if any(p is None for p in poses):
+        found = [_view_pose(v, cam) for v in views]
+        poses = [p for p in found if p is not None]
+        if len(poses) < len(found):   # PnP failed on a view
             continue
         score = float(np.median(_per_view_rms(views, cam, poses)))
         if best is None or score < best[0]:
             best = (score, cam, poses)
     if best is None:
         raise DegenerateInput("no fisheye start fits the views (too few corners per view?)")
-    _, cam, poses = best
+    _, cam, start = best
     obs = [Observation(0, i, v.object_mm, v.image_px) for i, v in enumerate(views)]
-    res = refine(obs, [cam], poses, options=replace(RefineOptions(distortion=distortion), max_rounds=1))
+    res = refine(obs, [cam], start, options=replace(RefineOptions(distortion=distortion), max_rounds=1))
     return res.cameras[0], res.view_poses, _per_view_rms(views, res.cameras[0], res.view_poses)
 
 
@@ -148,7 +149,7 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
     notes: list[str] = []
     skipped: dict[int, str] = {}
     names = list(view_names) if view_names is not None else [f"view {i}" for i in range(len(views_left))]
-    if stereo:
+    if views_right is not None:   # stereo
         if len(views_left) != len(views_right):
             raise DegenerateInput(f"{len(views_left)} left and {len(views_right)} right images: pairs are "
                                   f"matched by order, give the same number of each")
@@ -166,9 +167,9 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         pairs = []
         for i in keep:
             a, b = views_left[i], views_right[i]
-            common = [k for k in a.keys if k in set(b.keys)]
-            ia = [a.keys.index(k) for k in common]
-            ib = [b.keys.index(k) for k in common]
+            shared = [k for k in a.keys if k in set(b.keys)]
+            ia = [a.keys.index(k) for k in shared]
+            ib = [b.keys.index(k) for k in shared]
             pairs.append((a.take(ia), b.take(ib)))
         cams_views = [[p[0] for p in pairs], [p[1] for p in pairs]]
         index = keep
@@ -189,8 +190,8 @@ def calibrate_planar(views_left: list[CornerSet], views_right: list[CornerSet] |
         bad = np.flatnonzero(worst > limit)
         if not len(bad) or len(index) - len(bad) < planar.min_views:
             break
-        for b in bad:
-            skipped[index[b]] = f"fits far worse than the others: RMS {worst[b]:.2f} px > {limit:.2f} px"
+        for k in bad:
+            skipped[index[k]] = f"fits far worse than the others: RMS {worst[k]:.2f} px > {limit:.2f} px"
         good = [i for i in range(len(index)) if i not in set(bad)]
         cams_views = [[v[i] for i in good] for v in cams_views]
         index = [index[i] for i in good]

@@ -52,16 +52,21 @@ def format_summary(cal: Calibration) -> str:
                 for m in starts) + f"; kept {chosen}")
     if cal.kind.startswith("box") and cal.view_poses:
         # The extrinsics of Table 2: where the box is in each camera.
-        pose, std = cal.view_poses[0], (cal.view_pose_std[0] if cal.view_pose_std else np.full(6, np.nan))
+        pose = cal.view_poses[0]
+        pose_std = cal.view_pose_std[0] if cal.view_pose_std else np.full(6, np.nan)
         lines.append(f"box in {cal.camera_names[0]} camera: t (mm) " + ", ".join(
-            _pm(v, s, ".2f") for v, s in zip(np.ravel(pose.tvec), std[3:])) + "; rotation vector (deg) " + ", ".join(
-            _pm(np.degrees(v), np.degrees(s), ".3f") for v, s in zip(np.ravel(pose.rvec), std[:3])))
+            _pm(v, s, ".2f") for v, s in zip(np.ravel(pose.tvec), pose_std[3:]))
+            + "; rotation vector (deg) " + ", ".join(
+            _pm(np.degrees(v), np.degrees(s), ".3f") for v, s in zip(np.ravel(pose.rvec), pose_std[:3])))
         if cal.is_stereo:
+            assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
             t_r = cal.rotation @ np.ravel(pose.tvec) + np.ravel(cal.translation_mm)
             r_r = cv2.Rodrigues(cal.rotation @ pose.rotation)[0].ravel()
             lines.append("box in right camera: t (mm) " + ", ".join(f"{v:.2f}" for v in t_r)
                          + "; rotation vector (deg) " + ", ".join(f"{np.degrees(v):.3f}" for v in r_r))
     if cal.is_stereo:
+        assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
+        assert cal.rotation_std_rad is not None and cal.translation_std_mm is not None
         om = cv2.Rodrigues(cal.rotation)[0].ravel()
         t, ts = np.ravel(cal.translation_mm), np.ravel(cal.translation_std_mm)
         rs = np.ravel(cal.rotation_std_rad)
@@ -164,6 +169,7 @@ def _bounds_rows(cal: Calibration, bounds: Acceptance) -> list[tuple[str, str, s
                 rows.append((f"{name} {key} σ", f"{sd:.2f} px", f"{bounds.max_principal_point_std_px:g} px",
                              bool(sd <= bounds.max_principal_point_std_px)))
     if cal.is_stereo:
+        assert cal.translation_std_mm is not None  # set for every stereo calibration
         t = np.ravel(cal.translation_std_mm)
         rows.append(("baseline T σ (largest)", f"{t.max():.3f} mm", f"{bounds.max_baseline_std_mm:g} mm",
                      bool(np.all(t <= bounds.max_baseline_std_mm))))
@@ -193,6 +199,8 @@ def _parameter_table(cal: Calibration) -> str:
             out.append(f"<tr><td>{_esc(name)} ({_esc(cam.lens)})</td><td>{n}</td><td class=num>{value} {unit}</td>"
                        f"<td class=num>{sd}</td></tr>")
     if cal.is_stereo:
+        assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
+        assert cal.rotation_std_rad is not None and cal.translation_std_mm is not None
         rv = cv2.Rodrigues(np.asarray(cal.rotation, dtype=np.float64))[0].ravel()
         for axis, a, sd in zip("xyz", rv, np.ravel(cal.rotation_std_rad)):
             value, s = _fmt(np.degrees(a), np.degrees(sd), 4)

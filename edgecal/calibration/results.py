@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from typing import SupportsFloat
 
 import cv2
 import numpy as np
@@ -60,12 +61,12 @@ def view_results(cal: Calibration, views: list[View]) -> list[ViewResult]:
     return out
 
 
-def _num(x: float) -> float | None:
+def _num(x: SupportsFloat) -> float | None:
     x = float(x)
     return None if math.isnan(x) or math.isinf(x) else x
 
 
-def _param(value: float, std: float) -> dict[str, float | None]:
+def _param(value: SupportsFloat, std: SupportsFloat) -> dict[str, float | None]:
     return {"value": _num(value), "std": _num(std)}
 
 
@@ -75,7 +76,8 @@ def calibration_json(cal: Calibration, views: list[View], problems: list[str], b
     cams = {}
     for name, cam, std in zip(cal.camera_names, cal.cameras, cal.camera_std):
         k, d = cam.camera_matrix, np.ravel(cam.dist_coeffs)
-        entry = {n: _param(v, std[n]) for n, v in zip(INTRINSICS, (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))}
+        entry: dict[str, object] = {n: _param(v, std[n])
+                                    for n, v in zip(INTRINSICS, (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))}
         entry["lens"] = cam.lens
         entry["distortion"] = {n: _param(v, std.get(n, math.nan)) for n, v in zip(cam.param_names, d)}
         cams[name] = entry
@@ -84,6 +86,8 @@ def calibration_json(cal: Calibration, views: list[View], problems: list[str], b
                  "bounds": asdict(bounds), "rms_px": _num(cal.rms_px), "sigma_px": _num(cal.sigma_px),
                  "cameras": cams}
     if cal.is_stereo:
+        assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
+        assert cal.rotation_std_rad is not None and cal.translation_std_mm is not None
         rv = cv2.Rodrigues(np.asarray(cal.rotation, dtype=np.float64))[0].ravel()
         doc["stereo"] = {
             "rotation_vector_rad": [_param(a, s) for a, s in zip(rv, np.ravel(cal.rotation_std_rad))],

@@ -70,6 +70,7 @@ def reconstruction_error(cal: Calibration) -> Reconstruction:
 
     The known target points are placed in the left camera by the calibrated target pose of their view.
     """
+    assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
     rig = RigidTransform.from_rt(cal.rotation, cal.translation_mm)
     errors, boards = [], []
     for v, pose in enumerate(cal.view_poses):
@@ -127,6 +128,7 @@ def rectify(cal: Calibration) -> Rectification:
     """The rectification of the calibrated rig (stereo_rectify) and the vertical disparity of the rectified
     corners (in pixels of the original cameras)."""
     left, right = cal.cameras
+    assert cal.rotation is not None and cal.translation_mm is not None  # set for every stereo calibration
     r1, r2, p1, p2, q = stereo_rectify(left, right, cal.rotation, cal.translation_mm, cal.image_size)
     dy = []
     for v in range(len(cal.view_poses)):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,7 +52,7 @@ def camera_names(n_cameras: int) -> tuple[str, ...]:
     return CAMERA_NAMES if n_cameras == 2 else ("camera",)
 
 
-def name_views(files: list[tuple[str | Path, ...]]) -> list[View]:
+def name_views(files: Sequence[tuple[str | Path, ...]]) -> list[View]:
     """Views named by the first camera's file name; by a longer path where two names would be the same.
 
     A recording's ``left/000003.png`` and a folder's ``left03.jpg`` both name their view by the file the
@@ -209,7 +210,8 @@ def read_corners(path: str | Path, target: Target) -> CornersFile:
         covs.append(_covariance(row, where))
     if not order:
         raise InputError(f"{p}: the corners file lists no view")
-    views, corners = [], [[] for _ in cams]
+    views: list[View] = []
+    corners: list[list[CornerSet]] = [[] for _ in cams]
     for name in order:
         missing = [c for c in cams if c not in files[name]]
         if missing:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from edgecal.calibration.assign import assign, assign_stereo
+from edgecal.calibration.assign import Assignment, assign, assign_stereo
 from edgecal.calibration.collection import (
     MEASURES,
     STILL_PX,
@@ -86,6 +86,7 @@ class Collector:
         from edgecal import detect
         dets = [detect(img, self.target) for img in images]
         empty = corner_set(self.target, [], np.zeros((0, 2)))
+        found: tuple[Assignment | None, ...]
         if self.n_cameras == 2:
             found = assign_stereo(dets[0], dets[1], self.target)
         else:
@@ -100,8 +101,9 @@ class Collector:
         if not all(board_found(cs, self.target) for cs in corners):
             return Decision(False, "no board", corners)
         size = (greys[0].shape[1], greys[0].shape[0])
-        measures = [view_measures(cs, self.target, size) for cs in corners]
-        if any(m is None for m in measures):
+        found_measures = [view_measures(cs, self.target, size) for cs in corners]
+        measures = [m for m in found_measures if m is not None]
+        if len(measures) < len(found_measures):
             return Decision(False, "no board", corners)
         m = np.stack(measures)
         if not all(is_sharp(edge_width_px(g, cs, self.target), square_px(cs)) for g, cs in zip(greys, corners)):

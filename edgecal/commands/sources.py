@@ -51,7 +51,10 @@ def _list_log(path: str, as_json: bool) -> int:
     """Print the topics of a robot log: image topics with count, size, encoding and the URI to open them."""
     from pathlib import Path
 
+    from edgecal.drivers.robolog import MessageLog
+
     p = Path(path).expanduser()
+    log: MessageLog
     if p.suffix == ".mcap" and not p.is_dir():
         from edgecal.drivers.mcap_source import McapLog
         log, driver = McapLog(p), "mcap"

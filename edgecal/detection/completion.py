@@ -87,7 +87,7 @@ def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int
         iu, iv = lab[..., 0] - lo[0], lab[..., 1] - lo[1]
         inside = (iu >= 0) & (iv >= 0) & (iu < span[0]) & (iv < span[1])
         dst = np.where(inside[..., None], dense[np.clip(iu, 0, span[0] - 1), np.clip(iv, 0, span[1] - 1)], np.nan)
-        valid = np.isfinite(dst).all(axis=2)
+        valid = np.asarray(np.isfinite(dst).all(axis=2))
         src = np.broadcast_to(off[None].astype(np.float64), lab.shape)
         # at least two distinct labels along each axis (not a single row or column)
         spread = (np.where(valid[..., None], src, np.inf).min(axis=1)
@@ -118,7 +118,7 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
     ordered = sorted(line, key=lambda uv: uv[0] * along[0] + uv[1] * along[1])
     # Each line point stepped one square outwards, extrapolated along its own grid line (quadratic when two
     # inner points are known: fisheye lenses bend the lines too much for one homography to reach outside).
-    outer = []
+    outer: list[np.ndarray | None] = []
     for u, v in ordered:
         p0 = grid.get((u, v))
         p1 = grid.get((u - du, v - dv))
@@ -302,17 +302,17 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         refined, good, _quality = verify_predictions(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
                                                      np.arange(len(keys)) < n_holes, accepted, SEARCH_CRITERIA)
         start = 0
-        for end, labels, outward in groups:
+        for end, side, side_outward in groups:
             sel = range(start, end)
             start = end
-            if labels is not None:
+            if side is not None and side_outward is not None:
                 # A side line is taken only when most of it is confirmed and squares lie beyond it.
-                if sum(good[i] for i in sel) < max(2, 0.6 * len(labels)):
+                if sum(good[i] for i in sel) < max(2, 0.6 * len(side)):
                     continue
                 trial = dict(grid)
                 trial.update({keys[i]: refined[i] for i in sel if good[i]})
                 line = [keys[i] for i in sel if good[i]]
-                if not squares_beyond_alternate(trial, line, outward, smooth, params.min_contrast):
+                if not squares_beyond_alternate(trial, line, side_outward, smooth, params.min_contrast):
                     continue
             for i in sel:
                 if good[i]:

@@ -65,7 +65,7 @@ def nearest_spacing(pts: np.ndarray) -> np.ndarray:
     if len(pts) < 2:
         return np.full(len(pts), 20.0)
     d, _ = cKDTree(pts).query(pts, k=2)
-    return np.clip(d[:, 1], 4.0, 300.0)
+    return np.clip(np.asarray(d)[:, 1], 4.0, 300.0)
 
 
 # The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, or followed by

@@ -203,7 +203,8 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     # yet, a slanted board's squares are thin), moved by their board's motion fitted to the confirmed ones.
     retry = [k for k, (M, res) in enumerate(zip(motions, results)) if M is not None and not res[1].all()]
     missed = [np.nonzero(~results[k][1])[0] for k in retry]
-    moved = [local[k][m] @ motions[k][:, :2].T + motions[k][:, 2] for k, m in zip(retry, missed)]
+    # retry holds only boards with a motion
+    moved = [local[k][m] @ motions[k][:, :2].T + motions[k][:, 2] for k, m in zip(retry, missed)]  # type: ignore[index]
     again_all = _verify_boards(smooth, gx, gy, moved, [spacing[k][m] for k, m in zip(retry, missed)], p, True)
     for k, m, again in zip(retry, missed, again_all):
         for part in range(3):

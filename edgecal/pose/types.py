@@ -97,7 +97,7 @@ class Pose:
         return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(self.covariance[3:, 3:]).max(), 0.0))))
 
     @staticmethod
-    def invalid(reason: str, mode: str = "none", **counts: int) -> Pose:
+    def invalid(reason: str, mode: str = "none", n_left: int = 0, n_right: int = 0, n_both: int = 0) -> Pose:
         """A pose that could not be computed at all."""
         return Pose(np.full((3, 3), np.nan), np.full(3, np.nan), np.full((6, 6), np.nan), mode, False, reason,
-                    **counts)
+                    n_left=n_left, n_right=n_right, n_both=n_both)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 _SHIFT = 4  # cv2 drawing with 1/16 px vertex precision
 _ONE = 1 << _SHIFT
@@ -18,7 +19,7 @@ _ONE = 1 << _SHIFT
 DISTRACTORS = ("checker", "ladder", "tiles", "dots", "stripes", "text")
 
 
-def _fx(pts: np.ndarray) -> np.ndarray:
+def _fx(pts: ArrayLike) -> np.ndarray:
     return np.round(np.asarray(pts, dtype=np.float64) * _ONE).astype(np.int32)
 
 
@@ -121,8 +122,8 @@ def clutter_background(rng: np.random.Generator, size: tuple[int, int], n_shapes
             cv2.polylines(img, [_fx(pts)], True, v, int(rng.integers(1, 4)), cv2.LINE_AA, _SHIFT)
     if distractors is None:
         distractors = [DISTRACTORS[int(i)] for i in rng.integers(0, len(DISTRACTORS), int(rng.integers(1, 4)))]
-    for kind in distractors:
-        _distractor(img, rng, kind)
+    for name in distractors:
+        _distractor(img, rng, name)
     return img.astype(np.float32) / 255.0, list(distractors)
 
 

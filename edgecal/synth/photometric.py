@@ -61,7 +61,7 @@ def illumination(size: tuple[int, int], gradient: tuple[float, float], vignettin
 
 def apply_photometric(radiance: np.ndarray, params: Photometric, rng: np.random.Generator) -> np.ndarray:
     """The uint8 image a camera would record of ``radiance`` (h, w) float in [0, 1] under ``params``."""
-    img = np.asarray(radiance, dtype=np.float32)
+    img: np.ndarray = np.asarray(radiance, dtype=np.float32)
     h, w = img.shape
     if params.gradient != (0.0, 0.0) or params.vignetting:
         img = img * illumination((w, h), params.gradient, params.vignetting)
