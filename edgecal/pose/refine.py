@@ -79,9 +79,10 @@ def refine_pose(R0: np.ndarray, t0: np.ndarray, views: list[CameraView],
     rvec0, _ = cv2.Rodrigues(np.asarray(R0, dtype=np.float64))
     x0 = np.concatenate([rvec0.ravel(), np.asarray(t0, dtype=np.float64).ravel()])
     white = _view_whitening(views)
-    cache: dict = {}
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
 
-    def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(whitened residuals, whitened Jacobian, residuals px, Jacobian px) at x, cached for the last x."""
         key = x.tobytes()
         if key not in cache:
             cache.clear()
@@ -94,7 +95,13 @@ def refine_pose(R0: np.ndarray, t0: np.ndarray, views: list[CameraView],
                 cache[key] = (rw, Jw, r, J)
         return cache[key]
 
-    sol = least_squares(lambda x: evaluate(x)[0], x0, jac=lambda x: evaluate(x)[1], method="lm",
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return evaluate(x)[0]
+
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        return evaluate(x)[1]
+
+    sol = least_squares(residuals, x0, jac=jacobian, method="lm",
                         max_nfev=max_iterations, xtol=1e-12, ftol=1e-12, gtol=1e-12)
     x = sol.x
     _, _, r, J = evaluate(x)
