@@ -1,18 +1,26 @@
 """Reading YAML config files with validation that names the offending field.
 
-Config files are plain YAML mappings. :class:`ConfigReader` walks one and checks each field as it is
-read, so that every mistake is reported as ``FILE: field 'a.b[2].c' <what is wrong>`` and the caller
-never sees a KeyError or a TypeError. Unknown fields are rejected too: a typo must not silently fall
-back to a default.
+Config files are plain YAML mappings. Each section is described by a frozen dataclass that sits beside
+the code using it; its fields are declared with :func:`setting` (type from the annotation; bounds,
+choices and a one-line doc as field metadata) and :func:`read_settings` fills it from a section, so every
+section is read the same way. Every mistake is reported as ``FILE: field 'a.b[2].c' <what is wrong>``
+and the caller never sees a KeyError or a TypeError. Unknown fields are rejected with the known ones
+listed (a typo must not silently fall back to a default), and a renamed field says its new name.
+
+:class:`ConfigReader` is the walker underneath: typed access to one mapping, with the field's path.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import importlib.resources
 import math
+import types
+import typing
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import yaml
 
@@ -171,3 +179,150 @@ class ConfigReader:
         base = self.path(key)
         for i, item in enumerate(value):
             yield ConfigReader(item, self.source, f"{base}[{i}]")
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Declarative sections: a dataclass whose fields say how to read them.
+
+T = TypeVar("T")
+_RULE = "edgecal.config"     # the key of a field's metadata that holds its Rule
+
+
+@dataclasses.dataclass(frozen=True)
+class Rule:
+    """How one dataclass field is read from its config section (see :func:`setting`)."""
+
+    doc: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+    positive: bool = False                       # numbers: strictly greater than 0
+    choices: tuple[str, ...] | None = None       # strings: one of these
+    synonyms: Mapping[str, str] = dataclasses.field(default_factory=dict)  # accepted value -> stored value
+    renamed_from: tuple[str, ...] = ()           # former keys: named as renamed, not as unknown
+    inline: bool = False                         # a dataclass whose fields sit in this same section
+    read: Callable[[ConfigReader, str], Any] | None = None   # own reader for a value of several forms
+
+
+def setting(default: Any = dataclasses.MISSING, *, doc: str, default_factory: Any = dataclasses.MISSING,
+            minimum: float | None = None, maximum: float | None = None, positive: bool = False,
+            choices: Sequence[str] | None = None, synonyms: Mapping[str, str] | None = None,
+            renamed_from: Sequence[str] = (), inline: bool = False,
+            read: Callable[[ConfigReader, str], Any] | None = None) -> Any:
+    """A dataclass field of a config section: its default, a one-line doc, and what a valid value is.
+
+    The type comes from the annotation (bool, int, float, str, a nested settings dataclass, or one of
+    these or None). No default makes the field required.
+    """
+    rule = Rule(doc, minimum, maximum, positive, tuple(choices) if choices is not None else None,
+                dict(synonyms or {}), tuple(renamed_from), inline, read)
+    return dataclasses.field(default=default, default_factory=default_factory, metadata={_RULE: rule})
+
+
+@functools.lru_cache(maxsize=None)
+def _field_types(cls: type) -> dict[str, Any]:
+    return typing.get_type_hints(cls)
+
+
+def _value_type(annotation: Any) -> Any:
+    """``X`` for ``X``, ``X | None`` and ``Optional[X]``."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(args) == 1:
+            return args[0]
+    return annotation
+
+
+def settings_fields(cls: type) -> list[tuple[dataclasses.Field, Rule, Any]]:
+    """(field, rule, value type) of every config field of a settings dataclass, in declaration order.
+
+    Only fields declared with :func:`setting` are read from a file; a plain field (a solver's internal
+    knob) keeps its default.
+    """
+    types_ = _field_types(cls)
+    return [(f, f.metadata[_RULE], _value_type(types_[f.name])) for f in dataclasses.fields(cls)
+            if _RULE in f.metadata]
+
+
+def section_keys(cls: type) -> tuple[str, ...]:
+    """The keys a section of ``cls`` accepts (the fields of inline sub-sections included)."""
+    keys: list[str] = []
+    for f, rule, kind in settings_fields(cls):
+        keys.extend(section_keys(kind) if rule.inline else (f.name,))
+    return tuple(keys)
+
+
+def _renames(cls: type) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for f, rule, kind in settings_fields(cls):
+        if rule.inline:
+            out.update(_renames(kind))
+        out.update({old: f.name for old in rule.renamed_from})
+    return out
+
+
+def _read_value(r: ConfigReader, key: str, rule: Rule, kind: Any) -> Any:
+    if rule.read is not None:
+        return rule.read(r, key)
+    if kind is bool:
+        return r.boolean(key)
+    if kind is int:
+        return r.integer(key, minimum=None if rule.minimum is None else int(rule.minimum),
+                         maximum=None if rule.maximum is None else int(rule.maximum))
+    if kind is float:
+        return r.number(key, minimum=rule.minimum, maximum=rule.maximum, positive=rule.positive)
+    if kind is str:
+        value = r.string(key, choices=rule.choices)
+        return rule.synonyms.get(value, value)
+    if dataclasses.is_dataclass(kind):
+        return read_settings(kind, r.section(key))
+    raise TypeError(f"a settings field of type {kind!r} needs its own reader (setting(read=...))")
+
+
+def read_settings(cls: type[T], r: ConfigReader, *, base: T | None = None, ignore: Sequence[str] = (),
+                  unknown: Callable[[str, tuple[str, ...]], str] | None = None) -> T:
+    """Fill the settings dataclass ``cls`` from the section ``r``; raise ConfigError naming the field.
+
+    A key that is absent (or null) keeps the value of ``base`` if given, else the field's default; a
+    field without a default must be present. ``ignore``: keys of this section that another reader owns.
+    ``unknown(key, known)`` words the message for a key that is no field (default: the known ones listed).
+    After reading, a ``config_problem()`` method of the dataclass may return ``(key, what)`` for a rule
+    between fields (e.g. a maximum below its minimum).
+    """
+    known = section_keys(cls)
+    renames = _renames(cls)
+    for key in r.data:
+        name = str(key)
+        if name in known or name in ignore:
+            continue
+        if name in renames:
+            raise r.fail(name, f"was renamed to '{renames[name]}' (rename it in the file)")
+        raise r.fail(name, unknown(name, known) if unknown is not None
+                     else f"is not a known field (known: {', '.join(known)})")
+    values: dict[str, Any] = {}
+    for f, rule, kind in settings_fields(cls):
+        if rule.inline:
+            values[f.name] = read_settings(kind, r, base=getattr(base, f.name) if base is not None else None,
+                                           ignore=tuple(k for k in known if k not in section_keys(kind)) + tuple(ignore))
+        elif r.has(f.name) and (r.data[f.name] is not None or rule.read is not None):
+            values[f.name] = _read_value(r, f.name, rule, kind)
+        elif base is None and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise r.fail(f.name, "is missing")
+    obj = dataclasses.replace(base, **values) if base is not None else cls(**values)
+    check = getattr(obj, "config_problem", None)
+    problem = check() if check is not None else None
+    if problem is not None:
+        raise r.fail(*problem)
+    return obj
+
+
+def describe_settings(cls: type, prefix: str = "") -> list[tuple[str, Any, str]]:
+    """(dotted key, default, doc) of every field of a section and its sub-sections (docs and tests)."""
+    out: list[tuple[str, Any, str]] = []
+    for f, rule, kind in settings_fields(cls):
+        if dataclasses.is_dataclass(kind) and rule.read is None:
+            out.extend(describe_settings(kind, prefix if rule.inline else f"{prefix}{f.name}."))
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        out.append((f"{prefix}{f.name}", default, rule.doc))
+    return out

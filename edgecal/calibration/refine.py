@@ -32,8 +32,11 @@ from edgecal.calibration.types import (
     RigidTransform,
 )
 from edgecal.camera import DISTORTION_MODELS, LENS_PARAMS, CameraModel, project
+from edgecal.config import setting
 
 POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+# Every lens model a calibration can fit, and "auto" (edgecal.calibration.lens_choice picks one).
+DISTORTION_CHOICES = (*DISTORTION_MODELS, "auto")
 # Relative tolerances of least_squares: far below the 1e-4 relative uncertainty of a good calibration.
 _TOL = 1e-10
 _MAX_NFEV = 200
@@ -57,10 +60,13 @@ class Observation:
 class RefineOptions:
     """How to refine: distortion model (a key of DISTORTION_MODELS), robust loss, outlier rejection."""
 
-    distortion: str = "k1k2"
-    loss_scale_px: float = 1.0       # Huber: residuals above this count linearly
-    outlier_sigmas: float = 5.0      # drop corners this many noise sigmas out ...
-    outlier_min_px: float = 0.5      # ... and at least this far from their reprojection
+    distortion: str = setting("k1k2", doc="lens model to fit (docs/conventions.md), or auto (the simplest whose "
+                                          "residual is within the noise)", choices=DISTORTION_CHOICES)
+    loss_scale_px: float = setting(1.0, doc="Huber: residuals above this count linearly (robust first pass)",
+                                   positive=True, renamed_from=("robust_loss_scale_px",))
+    outlier_sigmas: float = setting(5.0, doc="drop corners this many noise sigmas out ...", minimum=2.0)
+    outlier_min_px: float = setting(0.5, doc="... and at least this far from their reprojection", minimum=0.0)
+    # Solver knobs of the code, not of the config file.
     max_rounds: int = 3
     fix_principal_point: bool = False
 
