@@ -133,12 +133,12 @@ def run_loop(folder: Path, out: Path, realtime: bool, endpoint: str, tracking: b
     name = f"live-{'realtime' if realtime else 'fast'}{'' if tracking else '-search'}.yaml"
     cfg = out / name
     source = {"driver": "replay", "path": str(folder), "pace": "recorded" if realtime else "fast",
-              "loop": False, "timeout_s": 1.0, "preload": preload}
+              "loop": False, "timeout_s": 1.0, "preload": preload, "latest_only": realtime}
     cfg.write_text(yaml.safe_dump({
         "source": source, "rig": str(folder / "rig.yaml"), "target": "targets/robot-3boards.yaml",
         "publish": {"endpoint": endpoint}, "tracking": {"enabled": tracking},
         "pose": {"covariance_scale": covariance_scale},
-        "loop": {"latest_frame_wins": realtime, "stop_at_end": True, "status_period_s": 1.0},
+        "loop": {"stop_at_end": True, "status_period_s": 1.0},
     }))
     sub = Collector(endpoint)
     loop = LiveLoop(load_live_config(cfg))

@@ -16,13 +16,15 @@ from __future__ import annotations
 import threading
 import time
 import traceback
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
+from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source
-from edgecal.drivers.spec import SourceSpec
+from edgecal.drivers.spec import CameraSettings, SourceSpec, buffers_setting
 from edgecal.errors import DeviceError
 
 INSTALL_HINT = ("install Debian's gir1.2-aravis-0.8 and PyGObject (pip install 'edgecal[aravis]', which needs "
@@ -41,6 +43,18 @@ _FORMATS: dict[str, tuple[type, int | None, int]] = {
     "RGB8": (np.uint8, cv2.COLOR_RGB2BGR, 3),
     "BGR8": (np.uint8, None, 3),
 }
+
+
+@dataclass(frozen=True)
+class AravisSettings(CameraSettings):
+    """Settings of a GigE Vision / USB3 Vision camera."""
+
+    pixel_format: str | None = setting(None, doc="GenICam pixel format", choices=tuple(_FORMATS))
+    gain_db: float | None = setting(None, doc="analogue gain (dB)", minimum=0, maximum=100)
+    trigger: str = setting("free", doc="free running, software (trigger()) or hardware (Line1)",
+                           choices=("free", "software", "hardware"))
+    packet_size: int | None = setting(None, doc="GigE stream packet size (bytes)", minimum=576, maximum=16384)
+    buffers: int = buffers_setting()
 
 _DRIFT_PPM = 20e-6
 

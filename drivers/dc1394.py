@@ -16,13 +16,15 @@ import ctypes
 import ctypes.util
 import select
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
+from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source
-from edgecal.drivers.spec import SourceSpec
+from edgecal.drivers.spec import CameraSettings, SourceSpec, buffers_setting
 from edgecal.errors import DeviceError
 
 LIBRARY_NAMES = ("libdc1394.so.25", "libdc1394.so.22", "libdc1394.so")
@@ -31,6 +33,18 @@ LIBRARY_NAMES = ("libdc1394.so.25", "libdc1394.so.22", "libdc1394.so")
 COLOR_MONO8, COLOR_YUV422, COLOR_RGB8, COLOR_MONO16, COLOR_RAW8 = 352, 354, 356, 357, 361
 CODINGS = {"Mono8": COLOR_MONO8, "Mono16": COLOR_MONO16, "RGB8": COLOR_RGB8, "YUV422": COLOR_YUV422,
            "Raw8": COLOR_RAW8}
+
+
+@dataclass(frozen=True)
+class DC1394Settings(CameraSettings):
+    """Settings of an IEEE-1394 (IIDC) camera."""
+
+    pixel_format: str | None = setting(None, doc="IIDC colour coding", choices=tuple(CODINGS))
+    gain: float | None = setting(None, doc="gain in raw register units", minimum=0)
+    trigger: str = setting("free", doc="free running, or hardware (external trigger mode 0)",
+                           choices=("free", "hardware"))
+    iso_speed: int | None = setting(None, doc="bus speed (Mb/s)", minimum=100, maximum=3200)
+    buffers: int = buffers_setting()
 VIDEO_MODE_FORMAT7_0 = 88
 FRAMERATE_FIRST = 32            # DC1394_FRAMERATE_1_875, then doubling up to 240 fps
 FRAMERATES = [1.875 * 2 ** i for i in range(8)]

@@ -15,17 +15,28 @@ from __future__ import annotations
 
 import datetime
 import time
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from edgecal.camera import CameraModel, StereoRig
+from edgecal.config import setting
 from edgecal.drivers.base import Frame, StereoFrame, StereoSource
-from edgecal.drivers.spec import SourceSpec
+from edgecal.drivers.spec import CameraSettings, SourceSpec, skew_setting
 from edgecal.errors import DeviceError
 
 DEFAULT_SIZE = (640, 400)
 DEFAULT_FPS = 30.0
+
+
+@dataclass(frozen=True)
+class DepthaiSettings(CameraSettings):
+    """Settings of an OAK stereo camera (width/height default to DEFAULT_SIZE)."""
+
+    iso: int | None = setting(None, doc="sensor sensitivity (manual exposure needs exposure_us too)", minimum=100,
+                              maximum=6400)
+    max_skew_ms: float = skew_setting()
 
 
 def load_depthai() -> Any:

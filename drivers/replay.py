@@ -33,9 +33,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.recording import MANIFEST, load_manifest
-from edgecal.drivers.spec import SourceSpec
+from edgecal.drivers.spec import SourceSettings, SourceSpec, pace_setting
 from edgecal.errors import DeviceError, InputError
 from edgecal.fileio import read_input
 from edgecal.imageheader import image_size
@@ -45,6 +46,21 @@ DEFAULT_FPS = 30.0
 # A rendered stereo sequence's ground truth (edgecal.synth), whose frames carry their capture stamps.
 SYNTH_TRUTH = "truth.json"
 MIB = 1 << 20
+
+
+@dataclass(frozen=True)
+class ReplaySettings(SourceSettings):
+    """Settings of a replay (a folder of images, a video file, an edgecal recording)."""
+
+    pace: str = pace_setting()
+    loop: bool = setting(False, doc="start again at the end")
+    fps: float | None = setting(None, doc="frame rate of images without stamps, or of a video (default: its own)",
+                                positive=True, maximum=10000)
+    preload: bool = setting(False, doc="decode every image once at open() (frames as a camera gives them)")
+    preload_max_mb: float = setting(2048.0, doc="refuse a preload whose decoded frames would need more (MiB)",
+                                    positive=True)
+    max_pixels: int = setting(DEFAULT_MAX_PIXELS, doc="refuse larger images (read from the header, before "
+                                                      "decoding)", minimum=1)
 
 
 @dataclass(frozen=True)

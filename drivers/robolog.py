@@ -21,12 +21,25 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.replay import DEFAULT_FPS, Pacer
 from edgecal.drivers.ros_images import IMAGE_TYPES, image_from_msg, stamp_ns
-from edgecal.drivers.spec import SourceSpec
+from edgecal.drivers.spec import SourceSettings, SourceSpec, pace_setting, skew_setting
 from edgecal.drivers.stereo import TimestampPairer
 from edgecal.errors import DeviceError, InputError, quote
+
+
+@dataclass(frozen=True)
+class RobotLogSettings(SourceSettings):
+    """Settings of an image topic (or a left and a right one) of an MCAP file or a ROS bag."""
+
+    topic: str | None = setting(None, doc="the image topic of a mono source")
+    left: str | None = setting(None, doc="the left image topic of a stereo source")
+    right: str | None = setting(None, doc="the right image topic of a stereo source")
+    pace: str = pace_setting()
+    loop: bool = setting(False, doc="start again at the end")
+    max_skew_ms: float = skew_setting()
 
 
 class LogCorrupt(Exception):

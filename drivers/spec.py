@@ -1,8 +1,11 @@
 """What source to open: URI parsing and the validation of a config section.
 
-A source is named by a URI on the command line or by a section of a configs/*.yaml file; both become
-a :class:`SourceSpec` checked field by field, so a typo or an out-of-range value is reported with the
-field's name before any device is touched.
+A source is named by a URI on the command line or by a section of a configs/*.yaml file. A URI is first
+turned into the mapping that the equivalent config section would hold (``replay:run1?pace=fast`` is
+``{driver: replay, path: run1, pace: fast}``), and both go through the same validation into a
+:class:`SourceSpec`: a typo or an out-of-range value is reported with the field's name before any device
+is touched. Each driver's settings are a dataclass beside the driver (``SETTINGS`` maps the driver name
+to it), read by edgecal.config.read_settings from the fields' metadata.
 
 URI forms (options after ``?`` are the same fields as in a config section)::
 
@@ -36,16 +39,16 @@ or, for two mono cameras::
 
 from __future__ import annotations
 
+import importlib
 import urllib.parse
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import yaml
 
-from edgecal.config import ConfigReader
+from edgecal.config import ConfigReader, read_settings, section_keys, setting
 from edgecal.errors import ConfigError, quote
-from edgecal.images import DEFAULT_MAX_PIXELS
 
 DRIVERS = ("replay", "v4l2", "aravis", "dc1394", "depthai", "stereo", "mcap", "rosbag")
 # Drivers that read a robot log (an MCAP file or a ROS bag): image topics by name.
@@ -55,70 +58,63 @@ LOG_DRIVERS = ("mcap", "rosbag")
 TARGET_FIELD = {"replay": "path", "v4l2": "device", "aravis": "name", "dc1394": "guid", "depthai": "mxid",
                 "mcap": "path", "rosbag": "path"}
 
-# Fields every driver accepts.
-COMMON_FIELDS = ("timeout_s", "camera_id", "latest_only")
+# Driver name -> "module:class" of its settings, a dataclass beside the driver. The driver modules import
+# SourceSpec from here, so their settings are imported when first needed: no import cycle, and parsing a
+# replay URI does not import the camera drivers.
+SETTINGS = {"replay": "replay:ReplaySettings", "v4l2": "v4l2:V4L2Settings", "aravis": "aravis:AravisSettings",
+            "dc1394": "dc1394:DC1394Settings", "depthai": "oak:DepthaiSettings", "stereo": "stereo:PairSettings",
+            "mcap": "robolog:RobotLogSettings", "rosbag": "robolog:RobotLogSettings"}
 
-# Settings each driver understands (a field a driver cannot honour is an error, not silently ignored).
-DRIVER_FIELDS: dict[str, tuple[str, ...]] = {
-    "replay": ("pace", "loop", "fps", "preload", "preload_max_mb", "max_pixels"),
-    "v4l2": ("width", "height", "fps", "pixel_format", "exposure_us", "gain", "buffers"),
-    "aravis": ("width", "height", "fps", "pixel_format", "exposure_us", "gain_db", "trigger", "packet_size",
-               "buffers"),
-    "dc1394": ("width", "height", "fps", "pixel_format", "exposure_us", "gain", "trigger", "iso_speed",
-               "buffers"),
-    "depthai": ("width", "height", "fps", "exposure_us", "iso", "max_skew_ms"),
-    "stereo": ("max_skew_ms",),
-    "mcap": ("topic", "left", "right", "pace", "loop", "max_skew_ms"),
-    "rosbag": ("topic", "left", "right", "pace", "loop", "max_skew_ms"),
-}
 
-PIXEL_FORMATS: dict[str, tuple[str, ...]] = {
-    "v4l2": ("GREY", "Y16", "YUYV", "UYVY", "MJPG", "BGR3", "RGB3", "NV12"),
-    "aravis": ("Mono8", "Mono10", "Mono12", "Mono16", "BayerRG8", "BayerGR8", "BayerGB8", "BayerBG8",
-               "RGB8", "BGR8"),
-    "dc1394": ("Mono8", "Mono16", "RGB8", "YUV422", "Raw8"),
-}
-
-TRIGGERS: dict[str, tuple[str, ...]] = {
-    "aravis": ("free", "software", "hardware"),
-    "dc1394": ("free", "hardware"),
-}
+def settings_class(driver: str) -> type[SourceSettings]:
+    """The settings dataclass of ``driver`` (one of DRIVERS)."""
+    module, _, name = SETTINGS[driver].partition(":")
+    return getattr(importlib.import_module(f"edgecal.drivers.{module}"), name)
 
 
 @dataclass(frozen=True)
 class SourceSettings:
-    """Validated settings of one source; ``None`` = leave the device's own value."""
+    """The settings every driver takes; each driver's class adds its own (see SETTINGS)."""
 
-    timeout_s: float = 2.0          # read() raises DeviceError when no frame comes within this
-    camera_id: str | None = None    # name written into Frame.camera_id (default: derived from the URI)
-    latest_only: bool = False       # wrap in a background latest-frame-wins reader
-    width: int | None = None
-    height: int | None = None
-    fps: float | None = None
-    pixel_format: str | None = None
-    exposure_us: float | None = None
-    gain_db: float | None = None
-    gain: float | None = None       # raw device units (V4L2, IEEE-1394 have no standard unit)
-    iso: int | None = None
-    trigger: str = "free"
-    packet_size: int | None = None
-    iso_speed: int | None = None
-    buffers: int = 4
-    pace: str = "recorded"          # replay, mcap, rosbag: "recorded" (real time; "realtime" says the same) or "fast"
-    loop: bool = False
-    preload: bool = False           # replay: decode every image once at open() (frames as a camera gives them)
-    preload_max_mb: float = 2048.0  # replay: refuse a preload whose decoded frames would need more (MiB)
-    max_pixels: int = DEFAULT_MAX_PIXELS  # replay: refuse larger images (read from the header, before decoding)
-    max_skew_ms: float = 5.0
-    topic: str | None = None        # mcap, rosbag: the image topic of a mono source
-    left: str | None = None         # mcap, rosbag: the left and right image topics of a stereo source
-    right: str | None = None
+    timeout_s: float = setting(2.0, doc="read() raises DeviceError when no frame comes within this (s)",
+                               positive=True)
+    camera_id: str | None = setting(None, doc="name written into Frame.camera_id (default: derived from the URI)")
+    latest_only: bool = setting(False, doc="wrap in a background latest-frame-wins reader (the live loop's "
+                                           "default: true)")
 
     def as_dict(self) -> dict[str, Any]:
         """Only the fields that differ from the defaults (for manifests and messages)."""
-        default = SourceSettings()
+        default = type(self)()
         return {f.name: getattr(self, f.name) for f in fields(self)
                 if getattr(self, f.name) != getattr(default, f.name)}
+
+
+@dataclass(frozen=True)
+class CameraSettings(SourceSettings):
+    """What every camera driver can set; ``None`` leaves the device's own value."""
+
+    width: int | None = setting(None, doc="image width (px)", minimum=1, maximum=65535)
+    height: int | None = setting(None, doc="image height (px)", minimum=1, maximum=65535)
+    fps: float | None = setting(None, doc="frame rate (Hz)", positive=True, maximum=10000)
+    exposure_us: float | None = setting(None, doc="exposure time (us)", positive=True, maximum=60e6)
+
+
+# Fields several drivers declare alike.
+def pace_setting() -> Any:
+    """``pace`` of a recording: real time as recorded, or as fast as frames are read."""
+    return setting("recorded", doc='"recorded" (real time; "realtime" says the same) or "fast"',
+                   choices=("recorded", "fast", "realtime"), synonyms={"realtime": "recorded"})
+
+
+def skew_setting() -> Any:
+    """``max_skew_ms`` of a stereo pairing."""
+    return setting(5.0, doc="left and right frames further apart than this are not paired (ms)", minimum=0,
+                   maximum=10000)
+
+
+def buffers_setting() -> Any:
+    """``buffers`` of a streaming camera."""
+    return setting(4, doc="capture buffers queued in the driver", minimum=2, maximum=64)
 
 
 @dataclass(frozen=True)
@@ -127,7 +123,7 @@ class SourceSpec:
 
     driver: str
     target: str = ""
-    settings: SourceSettings = field(default_factory=SourceSettings)
+    settings: SourceSettings = field(default_factory=SourceSettings)   # settings_class(driver)
     left: SourceSpec | None = None
     right: SourceSpec | None = None
 
@@ -143,77 +139,14 @@ class SourceSpec:
         """The id put into frames: the configured one, else derived from the URI."""
         return self.settings.camera_id or self.uri
 
-
-def _read_settings(r: ConfigReader, driver: str, skip: tuple[str, ...] = ()) -> SourceSettings:
-    allowed = COMMON_FIELDS + DRIVER_FIELDS[driver]
-    for key in r.data:
-        if key in skip:
-            continue
-        if key not in allowed:
-            known = [k for k in DRIVERS if key in DRIVER_FIELDS[k] or key in (TARGET_FIELD.get(k),)]
-            hint = f" (it is a field of: {', '.join(known)})" if known else ""
-            raise r.fail(str(key), f"is not a setting of the {driver} driver{hint}; "
-                                   f"known: {', '.join(skip + allowed)}")
-    kw: dict[str, Any] = {}
-    kw["timeout_s"] = r.number("timeout_s", 2.0, positive=True)
-    if r.has("camera_id"):
-        kw["camera_id"] = r.string("camera_id")
-    kw["latest_only"] = r.boolean("latest_only", False)
-    if r.has("width"):
-        kw["width"] = r.integer("width", minimum=1, maximum=65535)
-    if r.has("height"):
-        kw["height"] = r.integer("height", minimum=1, maximum=65535)
-    if r.has("fps"):
-        kw["fps"] = r.number("fps", positive=True, maximum=10000)
-    if r.has("pixel_format"):
-        kw["pixel_format"] = r.string("pixel_format", choices=PIXEL_FORMATS[driver])
-    if r.has("exposure_us"):
-        kw["exposure_us"] = r.number("exposure_us", positive=True, maximum=60e6)
-    if r.has("gain_db"):
-        kw["gain_db"] = r.number("gain_db", minimum=0, maximum=100)
-    if r.has("gain"):
-        kw["gain"] = r.number("gain", minimum=0)
-    if r.has("iso"):
-        kw["iso"] = r.integer("iso", minimum=100, maximum=6400)
-    if r.has("trigger"):
-        kw["trigger"] = r.string("trigger", choices=TRIGGERS[driver])
-    if r.has("packet_size"):
-        kw["packet_size"] = r.integer("packet_size", minimum=576, maximum=16384)
-    if r.has("iso_speed"):
-        kw["iso_speed"] = r.integer("iso_speed", minimum=100, maximum=3200)
-    if r.has("buffers"):
-        kw["buffers"] = r.integer("buffers", minimum=2, maximum=64)
-    if r.has("pace"):
-        pace = r.string("pace", choices=("recorded", "fast", "realtime"))
-        kw["pace"] = "recorded" if pace == "realtime" else pace
-    if r.has("loop"):
-        kw["loop"] = r.boolean("loop")
-    if r.has("preload"):
-        kw["preload"] = r.boolean("preload")
-    if r.has("preload_max_mb"):
-        kw["preload_max_mb"] = r.number("preload_max_mb", positive=True)
-    if r.has("max_pixels"):
-        kw["max_pixels"] = r.integer("max_pixels", minimum=1)
-    if r.has("max_skew_ms"):
-        kw["max_skew_ms"] = r.number("max_skew_ms", minimum=0, maximum=10000)
-    if driver in LOG_DRIVERS:
-        for key in ("topic", "left", "right"):
-            if r.has(key):
-                kw[key] = r.string(key)
-    return SourceSettings(**kw)
+    @property
+    def is_stereo(self) -> bool:
+        """Whether the source delivers left/right pairs (a pair, an OAK, or a log's left and right topics)."""
+        return self.driver in ("stereo", "depthai") or bool(getattr(self.settings, "left", None))
 
 
-def _check_log_topics(r: ConfigReader, driver: str, settings: SourceSettings) -> None:
-    """A log source names either one topic (mono) or a left and a right one (stereo)."""
-    example = f"{driver}:FILE?topic=/camera/image_raw or {driver}:FILE?left=/left/image_raw&right=/right/image_raw"
-    kw = {"topic": settings.topic, "left": settings.left, "right": settings.right}
-    if kw.get("topic") and (kw.get("left") or kw.get("right")):
-        raise r.fail("topic", f"cannot be given together with left/right (one topic is mono, left+right stereo: "
-                              f"{example})")
-    if not kw.get("topic") and not (kw.get("left") and kw.get("right")):
-        which = "right" if kw.get("left") else "left" if kw.get("right") else "topic"
-        raise r.fail(which, f"is missing: name the image topic(s), e.g. {example}; "
-                            "`edgecal sources FILE` lists them")
+# --------------------------------------------------------------------------------------------------------
+# URI -> mapping
 
 
 def _parse_options(query: str, what: str) -> dict[str, Any]:
@@ -237,16 +170,16 @@ def _split_pair(body: str, uri: str) -> tuple[str, str]:
                       "stereo:v4l2:/dev/video0,v4l2:/dev/video2")
 
 
-def parse_uri(uri: str) -> SourceSpec:
-    """Parse a source URI (see the module docstring) into a validated SourceSpec."""
-    spec = _parse_uri(uri)
-    if spec.driver in LOG_DRIVERS:
-        _check_log_topics(ConfigReader({}, f"source URI {quote(uri)}"), spec.driver, spec.settings)
-    return spec
+# Keys of a section that are not settings: a URI option of one of these names is an unknown setting.
+_SECTION_KEYS = ("uri", "driver", "stereo", "left", "right")
 
 
-def _parse_uri(uri: str) -> SourceSpec:
-    """parse_uri without the completeness check of a log source's topics (a config section may add them)."""
+def uri_mapping(uri: str) -> dict[str, Any]:
+    """The config section a source URI stands for (only its syntax is checked here).
+
+    ``replay:run1?pace=fast`` -> ``{driver: replay, path: run1, pace: fast}``;
+    ``stereo:[L,R]?max_skew_ms=2`` -> ``{stereo: {left: <L's mapping>, right: <R's>, max_skew_ms: 2}}``.
+    """
     if not isinstance(uri, str) or ":" not in uri:
         raise ConfigError(f"source URI {quote(uri)}: expected DRIVER:TARGET with DRIVER one of {', '.join(DRIVERS)} "
                           "(e.g. replay:recordings/run1 or aravis:192.168.1.20)")
@@ -267,95 +200,173 @@ def _parse_uri(uri: str) -> SourceSpec:
             options = _parse_options(tail[1:], what)
             body = body[1:close]
         left_uri, right_uri = _split_pair(body, uri)
-        left, right = parse_uri(left_uri), parse_uri(right_uri)
-        for side, spec in (("left", left), ("right", right)):
-            if spec.driver in ("stereo", "depthai") or spec.settings.left:
-                raise ConfigError(f"{what}: the {side} source must be a mono camera, not {spec.driver}")
-        settings = _read_settings(ConfigReader(options, what), "stereo")
-        return SourceSpec("stereo", "", settings, left, right)
+        _no_section_keys(options, "stereo", what)
+        return {"stereo": {"left": uri_mapping(left_uri), "right": uri_mapping(right_uri), **options}}
     target, _, query = rest.partition("?")
     options = _parse_options(query, what)
-    settings = _read_settings(ConfigReader(options, what), driver)
+    _no_section_keys(options, driver, what)
+    return {"driver": driver, **({TARGET_FIELD[driver]: target} if target else {}), **options}
+
+
+def _no_section_keys(options: Mapping[str, Any], driver: str, what: str) -> None:
+    reserved = (*_SECTION_KEYS, TARGET_FIELD.get(driver, ""))
+    for key in options:
+        if key in reserved and not (driver in LOG_DRIVERS and key in ("left", "right")):
+            _unknown_setting(ConfigReader(options, what), key, driver, ())
+
+
+# --------------------------------------------------------------------------------------------------------
+# mapping -> SourceSpec (the one validation of URIs and config sections)
+
+
+def _unknown_setting(r: ConfigReader, key: str, driver: str, reserved: tuple[str, ...]) -> None:
+    """Raise for ``key``, which is no setting of ``driver``, naming the drivers that have it."""
+    owners = [d for d in DRIVERS if key in section_keys(settings_class(d)) or key == TARGET_FIELD.get(d)]
+    hint = f" (it is a field of: {', '.join(owners)})" if owners else ""
+    raise r.fail(key, f"is not a setting of the {driver} driver{hint}; "
+                      f"known: {', '.join(reserved + section_keys(settings_class(driver)))}")
+
+
+def _read_settings(r: ConfigReader, driver: str, reserved: tuple[str, ...], listed: bool) -> SourceSettings:
+    """The settings of ``driver`` from ``r``; ``reserved``: the section's other keys (driver, path, ...),
+    named among the known ones when ``listed``."""
+    keys = section_keys(settings_class(driver))
+    for key in r.data:
+        if str(key) not in reserved and str(key) not in keys:
+            _unknown_setting(r, str(key), driver, reserved if listed else ())
+    return read_settings(settings_class(driver), r, ignore=reserved)
+
+
+def _check_log_topics(r: ConfigReader, driver: str, settings: Any) -> None:
+    """A log source names either one topic (mono) or a left and a right one (stereo)."""
+    example = f"{driver}:FILE?topic=/camera/image_raw or {driver}:FILE?left=/left/image_raw&right=/right/image_raw"
+    if settings.topic and (settings.left or settings.right):
+        raise r.fail("topic", f"cannot be given together with left/right (one topic is mono, left+right stereo: "
+                              f"{example})")
+    if not settings.topic and not (settings.left and settings.right):
+        which = "right" if settings.left else "left" if settings.right else "topic"
+        raise r.fail(which, f"is missing: name the image topic(s), e.g. {example}; "
+                            "`edgecal sources FILE` lists them")
+
+
+def _target(r: ConfigReader, driver: str, from_uri: bool) -> str:
+    """The device/file of a mono section: its driver's target field, checked and defaulted."""
+    key = TARGET_FIELD[driver]
+    target = str(r.raw(key, "")) if r.has(key) else ""
+
+    def fail(for_uri: str, for_section: str) -> ConfigError:
+        return ConfigError(f"{r.source}: {for_uri}") if from_uri else r.fail(key, for_section)
+
     if driver == "replay" and not target:
-        raise ConfigError(f"{what}: replay needs a path (replay:FOLDER or replay:VIDEO_FILE)")
+        raise fail("replay needs a path (replay:FOLDER or replay:VIDEO_FILE)",
+                   "is missing (the folder, video file or recording to replay)")
     if driver in LOG_DRIVERS and not target:
-        raise ConfigError(f"{what}: {driver} needs a path ({driver}:FILE?topic=TOPIC)")
+        raise fail(f"{driver} needs a path ({driver}:FILE?topic=TOPIC)",
+                   f"is missing (the {'MCAP file' if driver == 'mcap' else 'bag'} to read)")
     if driver == "v4l2" and not target:
         target = "/dev/video0"
     if driver == "dc1394" and target:
-        _check_guid(target, what)
+        try:
+            int(target, 16)
+        except ValueError:
+            problem = f"IEEE-1394 GUID {quote(target)} must be hexadecimal, e.g. 00b09d0100a1b2c3"
+            raise fail(problem, problem) from None
+    return target
+
+
+def _spec(r: ConfigReader, from_uri: bool, complete: bool = True) -> SourceSpec:
+    """Validate a section (or a URI's mapping) into a SourceSpec; ``complete``: also require what a
+    section may add to its ``uri:`` (a log's topics)."""
+    if r.has("stereo"):
+        return _stereo_spec(r, from_uri)
+    if r.has("uri"):
+        return _uri_section_spec(r)
+    driver = r.string("driver", choices=tuple(d for d in DRIVERS if d != "stereo"))
+    target = _target(r, driver, from_uri)
+    settings = _read_settings(r, driver, ("driver", TARGET_FIELD[driver]), listed=not from_uri)
+    if driver in LOG_DRIVERS and complete:
+        _check_log_topics(r, driver, settings)
     return SourceSpec(driver, target, settings)
 
 
-def _check_guid(guid: str, what: str) -> None:
+def _stereo_spec(r: ConfigReader, from_uri: bool) -> SourceSpec:
+    extra = [k for k in r.data if k != "stereo"]
+    if extra:
+        raise r.fail(str(extra[0]), "cannot sit beside 'stereo' (put it inside stereo.left/right)")
+    s = r.section("stereo")
+    known = ("left", "right", *section_keys(settings_class("stereo")))
+    for key in s.data:
+        if key not in known:
+            raise s.fail(str(key), f"is not a field of a stereo section (known: {', '.join(known)})")
+    sides = []
+    for side in ("left", "right"):
+        spec = _spec(s.section(side), from_uri)
+        if spec.is_stereo:
+            raise s.fail(side, f"must be a mono camera, not {spec.driver}"
+                               + (" with left and right topics" if spec.driver in LOG_DRIVERS else ""))
+        sides.append(spec)
+    settings = read_settings(settings_class("stereo"), s, ignore=("left", "right"))
+    return SourceSpec("stereo", "", settings, sides[0], sides[1])
+
+
+def _uri_section_spec(r: ConfigReader) -> SourceSpec:
+    """``uri:`` plus settings that override the URI's own options."""
+    if r.has("driver"):
+        raise r.fail("driver", "cannot be given together with 'uri' (the URI names the driver)")
+    uri = r.string("uri")
     try:
-        int(guid, 16)
-    except ValueError:
-        raise ConfigError(f"{what}: IEEE-1394 GUID {quote(guid)} must be hexadecimal, e.g. 00b09d0100a1b2c3") from None
+        mapping = uri_mapping(uri)
+        if "stereo" not in mapping:
+            _spec(ConfigReader(mapping, f"source URI {quote(uri)}"), from_uri=True, complete=False)
+    except ConfigError as exc:
+        raise r.fail("uri", f"is not a valid source URI: {exc}") from None
+    if "stereo" in mapping:
+        raise r.fail("uri", "a stereo pair in a config file is written as a 'stereo:' section")
+    driver = mapping["driver"]
+    target_key = TARGET_FIELD[driver]
+    if r.has(target_key):
+        raise r.fail(target_key, "cannot be given together with 'uri' (the URI names the device)")
+    merged = {**mapping, **{k: v for k, v in r.data.items() if k != "uri"}}
+    m = ConfigReader(merged, r.source, r.prefix)
+    settings = _read_settings(m, driver, ("driver", target_key), listed=False)
+    if driver in LOG_DRIVERS:
+        _check_log_topics(r, driver, settings)
+    return SourceSpec(driver, _target(m, driver, from_uri=True), settings)
 
 
-def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "config") -> SourceSpec:
+def parse_uri(uri: str) -> SourceSpec:
+    """Parse a source URI (see the module docstring) into a validated SourceSpec."""
+    return _spec(ConfigReader(uri_mapping(uri), f"source URI {quote(uri)}"), from_uri=True)
+
+
+def spec_from_config(section: Mapping[str, Any] | ConfigReader, source: str = "config", *,
+                     defaults: Mapping[str, Any] | None = None) -> SourceSpec:
     """Validate a config section (a mapping, or a ConfigReader positioned on it) into a SourceSpec.
 
     The section holds either ``uri:`` (plus settings that override the URI's options), or ``driver:``
     with that driver's target field (``path``, ``device``, ``name``, ``guid``, ``mxid``), or
-    ``stereo:`` with ``left``/``right`` sub-sections.
+    ``stereo:`` with ``left``/``right`` sub-sections. ``defaults``: settings of the source as a whole
+    that the section (or its URI) does not give, e.g. the live loop's ``latest_only: true``.
     """
     r = section if isinstance(section, ConfigReader) else ConfigReader(section, source)
-    if r.has("stereo"):
-        extra = [k for k in r.data if k != "stereo"]
-        if extra:
-            raise r.fail(str(extra[0]), "cannot sit beside 'stereo' (put it inside stereo.left/right)")
-        s = r.section("stereo")
-        for key in s.data:
-            if key not in ("left", "right") + COMMON_FIELDS + DRIVER_FIELDS["stereo"]:
-                raise s.fail(str(key), "is not a field of a stereo section "
-                                       f"(known: left, right, {', '.join(COMMON_FIELDS + DRIVER_FIELDS['stereo'])})")
-        left = spec_from_config(s.section("left"))
-        right = spec_from_config(s.section("right"))
-        for side, spec in (("left", left), ("right", right)):
-            if spec.driver in ("stereo", "depthai"):
-                raise s.fail(side, f"must be a mono camera, not {spec.driver}")
-        settings = _read_settings(s, "stereo", skip=("left", "right"))
-        return SourceSpec("stereo", "", settings, left, right)
-    if r.has("uri"):
-        if r.has("driver"):
-            raise r.fail("driver", "cannot be given together with 'uri' (the URI names the driver)")
-        uri = r.string("uri")
+    if defaults:
+        r = ConfigReader(_with_defaults(r.data, defaults), r.source, r.prefix)
+    return _spec(r, from_uri=False)
+
+
+def _with_defaults(data: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict[str, Any]:
+    """``data`` with ``defaults`` for the keys it (or its URI, or its stereo section) does not set."""
+    if isinstance(data.get("stereo"), Mapping):
+        return {**data, "stereo": {**defaults, **data["stereo"]}}
+    if isinstance(data.get("uri"), str):
         try:
-            base = _parse_uri(uri)
-        except ConfigError as exc:
-            raise r.fail("uri", f"is not a valid source URI: {exc}") from None
-        if base.driver == "stereo":
-            raise r.fail("uri", "a stereo pair in a config file is written as a 'stereo:' section")
-        # Settings from the section override the URI's own options.
-        merged = dict(base.settings.as_dict())
-        merged.update({k: v for k, v in r.data.items() if k != "uri"})
-        target_key = TARGET_FIELD[base.driver]
-        if target_key in merged:
-            raise r.fail(target_key, "cannot be given together with 'uri' (the URI names the device)")
-        settings = _read_settings(ConfigReader(merged, r.source, r.prefix), base.driver)
-        if base.driver in LOG_DRIVERS:
-            _check_log_topics(r, base.driver, settings)
-        return replace(base, settings=settings)
-    driver = r.string("driver", choices=tuple(d for d in DRIVERS if d != "stereo"))
-    target_key = TARGET_FIELD[driver]
-    target = str(r.raw(target_key, "")) if r.has(target_key) else ""
-    if driver == "replay" and not target:
-        raise r.fail("path", "is missing (the folder, video file or recording to replay)")
-    if driver in LOG_DRIVERS and not target:
-        raise r.fail("path", f"is missing (the {'MCAP file' if driver == 'mcap' else 'bag'} to read)")
-    if driver == "v4l2" and not target:
-        target = "/dev/video0"
-    if driver == "dc1394" and target:
-        try:
-            _check_guid(target, r.source)
-        except ConfigError as exc:
-            raise r.fail("guid", str(exc).split(": ", 1)[1]) from None
-    settings = _read_settings(r, driver, skip=("driver", target_key))
-    if driver in LOG_DRIVERS:
-        _check_log_topics(r, driver, settings)
-    return SourceSpec(driver, target, settings)
+            given = uri_mapping(data["uri"])
+        except ConfigError:
+            given = {}      # reported with the field's name by the validation
+        if "stereo" in given:
+            return dict(data)
+        return {**{k: v for k, v in defaults.items() if k not in given}, **data}
+    return {**defaults, **data}
 
 
 def as_spec(uri_or_config: str | Mapping[str, Any] | ConfigReader | SourceSpec) -> SourceSpec:
@@ -367,3 +378,8 @@ def as_spec(uri_or_config: str | Mapping[str, Any] | ConfigReader | SourceSpec) 
     if isinstance(uri_or_config, (Mapping, ConfigReader)):
         return spec_from_config(uri_or_config)
     raise ConfigError(f"a source must be a URI string or a config section, got {type(uri_or_config).__name__}")
+
+
+__all__ = ["DRIVERS", "LOG_DRIVERS", "SETTINGS", "TARGET_FIELD", "CameraSettings", "SourceSettings", "SourceSpec",
+           "as_spec", "buffers_setting", "pace_setting", "parse_uri", "settings_class", "skew_setting",
+           "spec_from_config", "uri_mapping"]

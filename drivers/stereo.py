@@ -10,9 +10,18 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from dataclasses import dataclass
 
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
+from edgecal.drivers.spec import SourceSettings, skew_setting
 from edgecal.errors import DeviceError
+
+
+@dataclass(frozen=True)
+class PairSettings(SourceSettings):
+    """Settings of two mono sources paired by timestamp."""
+
+    max_skew_ms: float = skew_setting()
 
 
 class TimestampPairer:

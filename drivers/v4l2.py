@@ -21,16 +21,28 @@ import re
 import stat
 import struct
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 
+from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source
-from edgecal.drivers.spec import SourceSpec
+from edgecal.drivers.spec import CameraSettings, SourceSpec, buffers_setting
 from edgecal.errors import DeviceError
 
 # FOURCCs OpenCV hands through undecoded when CAP_PROP_CONVERT_RGB is off (grey sensors).
 _RAW_FORMATS = ("GREY", "Y16")
+
+
+@dataclass(frozen=True)
+class V4L2Settings(CameraSettings):
+    """Settings of a V4L2 camera."""
+
+    pixel_format: str | None = setting(None, doc="the FOURCC to capture",
+                                       choices=("GREY", "Y16", "YUYV", "UYVY", "MJPG", "BGR3", "RGB3", "NV12"))
+    gain: float | None = setting(None, doc="gain in the device's raw units (V4L2 has no standard unit)", minimum=0)
+    buffers: int = buffers_setting()
 
 
 def check_device_node(path: str) -> None:

@@ -218,7 +218,7 @@ def setting(default: Any = dataclasses.MISSING, *, doc: str, default_factory: An
     return dataclasses.field(default=default, default_factory=default_factory, metadata={_RULE: rule})
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _field_types(cls: type) -> dict[str, Any]:
     return typing.get_type_hints(cls)
 
@@ -243,6 +243,7 @@ def settings_fields(cls: type) -> list[tuple[dataclasses.Field, Rule, Any]]:
             if _RULE in f.metadata]
 
 
+@functools.cache
 def section_keys(cls: type) -> tuple[str, ...]:
     """The keys a section of ``cls`` accepts (the fields of inline sub-sections included)."""
     keys: list[str] = []
@@ -279,12 +280,14 @@ def _read_value(r: ConfigReader, key: str, rule: Rule, kind: Any) -> Any:
 
 
 def read_settings(cls: type[T], r: ConfigReader, *, base: T | None = None, ignore: Sequence[str] = (),
-                  unknown: Callable[[str, tuple[str, ...]], str] | None = None) -> T:
+                  unknown: Callable[[str, tuple[str, ...]], str] | None = None,
+                  retired: Mapping[str, str] | None = None) -> T:
     """Fill the settings dataclass ``cls`` from the section ``r``; raise ConfigError naming the field.
 
     A key that is absent (or null) keeps the value of ``base`` if given, else the field's default; a
     field without a default must be present. ``ignore``: keys of this section that another reader owns.
-    ``unknown(key, known)`` words the message for a key that is no field (default: the known ones listed).
+    ``unknown(key, known)`` words the message for a key that is no field (default: the known ones listed);
+    ``retired``: keys this section no longer reads -> what to write instead (a setting that moved elsewhere).
     After reading, a ``config_problem()`` method of the dataclass may return ``(key, what)`` for a rule
     between fields (e.g. a maximum below its minimum).
     """
@@ -296,13 +299,16 @@ def read_settings(cls: type[T], r: ConfigReader, *, base: T | None = None, ignor
             continue
         if name in renames:
             raise r.fail(name, f"was renamed to '{renames[name]}' (rename it in the file)")
+        if retired and name in retired:
+            raise r.fail(name, f"is no longer read here: {retired[name]}")
         raise r.fail(name, unknown(name, known) if unknown is not None
-                     else f"is not a known field (known: {', '.join(known)})")
+                     else f"is not a known field (known: {', '.join((*known, *ignore))})")
     values: dict[str, Any] = {}
     for f, rule, kind in settings_fields(cls):
         if rule.inline:
+            others = tuple(k for k in known if k not in section_keys(kind)) + tuple(ignore)
             values[f.name] = read_settings(kind, r, base=getattr(base, f.name) if base is not None else None,
-                                           ignore=tuple(k for k in known if k not in section_keys(kind)) + tuple(ignore))
+                                           ignore=others)
         elif r.has(f.name) and (r.data[f.name] is not None or rule.read is not None):
             values[f.name] = _read_value(r, f.name, rule, kind)
         elif base is None and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:

@@ -87,3 +87,50 @@ def test_packaged_example_sections_are_valid() -> None:
                                                  "rosbag"}
     assert (specs["robot_log_stereo"].settings.left, specs["ros1_bag_mono"].settings.topic) == (
         "/stereo/left/image_raw", "/camera/image_raw/compressed")
+
+
+@pytest.mark.parametrize("uri, section", [
+    ("replay:/data/run1?pace=fast&loop=true", {"driver": "replay", "path": "/data/run1", "pace": "fast", "loop": True}),
+    ("aravis:10.0.0.5?exposure_us=2000", {"driver": "aravis", "name": "10.0.0.5", "exposure_us": 2000}),
+    ("mcap:f.mcap?left=/l&right=/r", {"driver": "mcap", "path": "f.mcap", "left": "/l", "right": "/r"}),
+    ("stereo:[v4l2:/dev/video0,v4l2:/dev/video2?fps=30]?max_skew_ms=3",
+     {"stereo": {"left": {"driver": "v4l2", "device": "/dev/video0"},
+                 "right": {"driver": "v4l2", "device": "/dev/video2", "fps": 30}, "max_skew_ms": 3}}),
+])
+def test_a_uri_is_the_mapping_of_its_config_section(uri: str, section: dict) -> None:
+    """parse_uri builds the mapping a config section gives and validates it the same way."""
+    from edgecal.drivers.spec import uri_mapping
+    assert uri_mapping(uri) == section
+    assert parse_uri(uri) == spec_from_config(section)
+    if "stereo" not in section:      # a pair in a config file is a stereo: section, not uri: stereo:...
+        assert parse_uri(uri) == spec_from_config({"uri": uri})
+
+
+def test_each_driver_has_its_own_settings_class() -> None:
+    from edgecal.config import describe_settings
+    from edgecal.drivers.spec import DRIVERS, SourceSettings, settings_class
+    for driver in DRIVERS:
+        cls = settings_class(driver)
+        assert issubclass(cls, SourceSettings) and all(doc for _, _, doc in describe_settings(cls)), driver
+    assert type(parse_uri("replay:x").settings).__name__ == "ReplaySettings"
+    assert not hasattr(parse_uri("replay:x").settings, "exposure_us")      # no union of every driver's fields
+    assert parse_uri("v4l2:?buffers=8").settings.buffers == 8
+
+
+def test_defaults_fill_what_a_section_and_its_uri_leave_out() -> None:
+    """The live loop's latest_only: true, unless the section (or its URI, or its stereo pair) says false."""
+    live = {"latest_only": True}
+    assert spec_from_config({"driver": "replay", "path": "a"}, defaults=live).settings.latest_only
+    off = {"driver": "replay", "path": "a", "latest_only": False}
+    assert not spec_from_config(off, defaults=live).settings.latest_only
+    assert spec_from_config({"uri": "replay:a"}, defaults=live).settings.latest_only
+    assert not spec_from_config({"uri": "replay:a?latest_only=false"}, defaults=live).settings.latest_only
+    pair = {"left": {"uri": "replay:a"}, "right": {"uri": "replay:b"}}
+    s = spec_from_config({"stereo": pair}, defaults=live)
+    assert s.settings.latest_only and not s.left.settings.latest_only     # the pair is wrapped, not each side
+    assert not spec_from_config({"stereo": {**pair, "latest_only": False}}, defaults=live).settings.latest_only
+
+
+def test_a_log_with_two_topics_is_no_side_of_a_pair() -> None:
+    with pytest.raises(ConfigError, match="field 'stereo.left' must be a mono camera, not mcap with left and right"):
+        spec_from_config({"stereo": {"left": {"uri": "mcap:f.mcap?left=/l&right=/r"}, "right": {"uri": "replay:b"}}})

@@ -23,7 +23,7 @@ def test_live_loop_on_a_fisheye_rig_meets_the_pinhole_targets(tmp_path: Path) ->
     assert rig.left.lens == "fisheye" and rig.right.lens == "fisheye"
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, endpoint,
-                       source_extra={"pace": "fast", "loop": True}, loop={"latest_frame_wins": False})
+                       source_extra={"pace": "fast", "loop": True, "latest_only": False})
     sub = Subscriber(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     th, result = run_in_thread(loop)

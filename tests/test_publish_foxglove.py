@@ -93,8 +93,9 @@ def _jpeg_in(payload: bytes) -> np.ndarray | None:
 def test_foxglove_server_shows_images_corners_pose_and_status(sequence: tuple[Path, dict], tmp_path: Path) -> None:
     folder, _ = sequence
     port = _free_port()
-    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint(), source_extra={"loop": True},
-                       loop={"latest_frame_wins": True, "stop_at_end": False, "status_period_s": 0.25})
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint(),
+                       source_extra={"loop": True, "latest_only": True},
+                       loop={"stop_at_end": False, "status_period_s": 0.25})
     doc = yaml.safe_load(cfg.read_text())
     doc["publish"].update({"foxglove": {"port": port, "image_hz": 20, "image_width": 320},
                            "frame_id": "cams", "child_frame_id": "base_link"})

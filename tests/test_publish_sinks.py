@@ -63,8 +63,8 @@ def read_log(path: Path) -> dict[str, list]:
 
 
 def _config(tmp_path: Path, folder: Path, publish: dict, source: dict | None = None) -> Path:
-    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint(), source_extra={"pace": "fast"},
-                       loop={"latest_frame_wins": False, "stop_at_end": True})
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint(),
+                       source_extra={"pace": "fast", "latest_only": False}, loop={"stop_at_end": True})
     doc = yaml.safe_load(cfg.read_text())
     doc["publish"].update(publish)
     if source is not None:

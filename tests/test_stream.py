@@ -70,7 +70,7 @@ def test_loop_publishes_poses_matching_truth(sequence: tuple[Path, dict], tmp_pa
     folder, truth = sequence
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, endpoint,
-                       source_extra={"pace": "fast", "loop": True}, loop={"latest_frame_wins": False})
+                       source_extra={"pace": "fast", "loop": True, "latest_only": False})
     sub = Subscriber(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     th, result = run_in_thread(loop)
@@ -119,8 +119,8 @@ def test_loop_survives_corrupt_frames(sequence: tuple[Path, dict], tmp_path: Pat
     small = cv2.imread(str(bad / "right" / "000002.png"), cv2.IMREAD_UNCHANGED)[::2, ::2]
     cv2.imwrite(str(bad / "right" / "000002.png"), small)
     endpoint = free_endpoint()
-    cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"pace": "fast"},
-                       loop={"latest_frame_wins": False, "stop_at_end": True})
+    cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"pace": "fast", "latest_only": False},
+                       loop={"stop_at_end": True})
     import yaml
     doc = yaml.safe_load(cfg.read_text())
     doc["publish"]["hwm"] = 100         # the few messages of this run are never dropped at the send queue
@@ -161,8 +161,7 @@ def test_both_images_corrupt_give_an_invalid_pose(sequence: tuple[Path, dict], t
         cv2.imwrite(str(bad / side / "000001.png"), small)
     (bad / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
     endpoint = free_endpoint()
-    cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"loop": True},
-                       loop={"latest_frame_wins": False})
+    cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"loop": True, "latest_only": False})
     sub = Subscriber(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     th, _ = run_in_thread(loop)
@@ -201,6 +200,7 @@ def test_check_image() -> None:
     ({"target": "targets/nope.yaml"}, "target"),
     ({"source": {"driver": "replay", "path": "x", "fsp": 3}}, "source.fsp"),
     ({"extra": 1}, "extra"),
+    ({"loop": {"latest_frame_wins": False}}, "loop.latest_frame_wins"),
 ])
 def test_bad_config_names_the_field(sequence: tuple[Path, dict], tmp_path: Path, edit: dict, field: str) -> None:
     import yaml
@@ -210,6 +210,20 @@ def test_bad_config_names_the_field(sequence: tuple[Path, dict], tmp_path: Path,
     doc.update(edit)
     cfg.write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match=f"field '{field}'"):
+        load_live_config(cfg)
+
+
+def test_the_live_source_keeps_only_the_newest_frame_unless_told_otherwise(sequence: tuple[Path, dict],
+                                                                         tmp_path: Path) -> None:
+    """One latest-frame-wins setting, the source's latest_only: true by default in the live loop."""
+    folder, _ = sequence
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint())
+    assert load_live_config(cfg).source.settings.latest_only
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint(), source_extra={"latest_only": False})
+    assert not load_live_config(cfg).source.settings.latest_only
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint(), loop={"latest_frame_wins": False})
+    with pytest.raises(ConfigError, match="field 'loop.latest_frame_wins' is no longer read here: set "
+                                          "source.latest_only instead"):
         load_live_config(cfg)
 
 
@@ -280,8 +294,8 @@ def test_a_source_of_only_unreadable_frames_is_not_read_in_a_spin(sequence: tupl
         (bad / side / "000001.png").write_bytes(b"not a png")
     (bad / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
     (bad / "left" / "000000.png").write_bytes(b"not a png either")   # every pair has an unreadable image
-    cfg = write_config(tmp_path / "live.yaml", bad, free_endpoint(), source_extra={"pace": "fast", "loop": True},
-                       loop={"latest_frame_wins": False})
+    cfg = write_config(tmp_path / "live.yaml", bad, free_endpoint(),
+                       source_extra={"pace": "fast", "loop": True, "latest_only": False})
     loop = LiveLoop(load_live_config(cfg))
     th, result = run_in_thread(loop)
     try:

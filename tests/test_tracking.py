@@ -180,8 +180,8 @@ def test_loop_tracks_and_searches_again_when_the_robot_jumps(robot, tmp_path: Pa
         for k, src in enumerate((0, 1, 2, 0)):
             (jump / side / f"{k:06d}.png").write_bytes((folder / side / f"{src:06d}.png").read_bytes())
     (jump / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
-    cfg = write_config(tmp_path / "live.yaml", jump, free_endpoint(), source_extra={"pace": "fast"},
-                       loop={"latest_frame_wins": False, "stop_at_end": True})
+    cfg = write_config(tmp_path / "live.yaml", jump, free_endpoint(),
+                       source_extra={"pace": "fast", "latest_only": False}, loop={"stop_at_end": True})
     loop = LiveLoop(load_live_config(cfg))
     assert loop.run() == 0
     assert loop.stats.frames == 4 and loop.stats.poses_valid == 4

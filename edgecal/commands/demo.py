@@ -134,10 +134,11 @@ def stream(out: Path) -> tuple[list[dict], float]:
 
     cfg = out / "live.yaml"
     write_atomic(cfg, yaml.safe_dump({
-        "source": {"driver": "replay", "path": str(out / "robot"), "pace": "fast", "preload": True},
+        "source": {"driver": "replay", "path": str(out / "robot"), "pace": "fast", "preload": True,
+                   "latest_only": False},
         "rig": str(out / "rig.yaml"), "target": "targets/robot-3boards.yaml",
         "publish": {"endpoint": ENDPOINT},
-        "loop": {"latest_frame_wins": False, "stop_at_end": True},
+        "loop": {"stop_at_end": True},
     }, sort_keys=False).encode("utf-8"))
     loop = LiveLoop(load_live_config(cfg))
     ctx = zmq.Context()

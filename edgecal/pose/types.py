@@ -2,20 +2,23 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from edgecal.config import setting
 
 
 @dataclass(frozen=True)
 class QualityBounds:
     """A pose outside any of these bounds is published as invalid, with the bound named in the reason."""
 
-    min_corners: int = 8                  # corners used by the fit (both cameras counted once each)
-    max_rms_px: float = 1.0               # reprojection RMS over all residuals
-    max_position_std_mm: float = 5.0      # sqrt of the largest eigenvalue of the position covariance
-    max_rotation_std_deg: float = 1.0     # same for the rotation block
+    min_corners: int = setting(8, doc="corners used by the fit (both cameras counted once each)", minimum=3)
+    max_rms_px: float = setting(1.0, doc="reprojection RMS over all residuals", positive=True)
+    max_position_std_mm: float = setting(5.0, doc="sqrt of the largest eigenvalue of the position covariance",
+                                         positive=True)
+    max_rotation_std_deg: float = setting(1.0, doc="the same for the rotation block", positive=True)
 
 
 @dataclass(frozen=True)
@@ -41,12 +44,15 @@ class PoseSettings:
                       The floor keeps a clean frame's tiny spread from rejecting good corners.
     """
 
-    triangulation: str = "linear"
-    covariance_scale: str = "model"
-    corner_noise_px: float = 0.1
-    outlier_sigmas: float = 4.0
-    outlier_min_px: float = 0.5
-    bounds: QualityBounds = field(default_factory=QualityBounds)
+    triangulation: str = setting("linear", doc="linear | optimal (Hartley-Sturm first)", choices=("optimal", "linear"))
+    covariance_scale: str = setting("model", doc="model | max | residual | noise (see above)",
+                                    choices=("model", "max", "residual", "noise"))
+    corner_noise_px: float = setting(0.1, doc="1-sigma corner noise of the detector (px)", positive=True)
+    outlier_sigmas: float = setting(4.0, doc="a corner beyond this many robust sigmas ...", minimum=2.0)
+    outlier_min_px: float = setting(0.5, doc="... and beyond this is left out and the pose refitted (px)",
+                                    positive=True)
+    bounds: QualityBounds = setting(default_factory=QualityBounds, doc="quality bounds (in the same section)",
+                                    inline=True)
 
 
 @dataclass

@@ -4,6 +4,7 @@
 
     source:                      # a drivers source section (see edgecal/drivers/spec.py)
       uri: replay:out/demo/robot?loop=true
+      latest_only: true          # the live loop's default: always work on the newest frame
     rig: out/demo/rig.yaml       # stereo calibration (cv2.FileStorage, T in metres)
     target: targets/robot-3boards.yaml
     detector: null               # optional detector thresholds file (configs/detector.yaml format)
@@ -13,11 +14,12 @@
     tracking: {enabled: true, max_gap_s: 0.5, min_confirmed_fraction: 0.6}
     publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4, handshake_timeout_s: 2.0,
               curve: {server_key: keys/server.key_secret, client_keys: keys/clients}}   # curve: beyond loopback
-    loop:    {latest_frame_wins: true, status_period_s: 1.0, camera_lost_after_s: 2.0,
-              reconnect_min_s: 0.5, reconnect_max_s: 10.0, stop_at_end: true}
+    loop:    {status_period_s: 1.0, camera_lost_after_s: 2.0, reconnect_min_s: 0.5, reconnect_max_s: 10.0,
+              stop_at_end: true}
 
 Relative paths are taken from the current directory; a target or detector file that is not found
 there is looked up among the files shipped in configs/ (e.g. ``targets/robot-3boards.yaml``).
+Each section is a settings dataclass beside the code that uses it, read by edgecal.config.read_settings.
 """
 
 from __future__ import annotations
@@ -26,11 +28,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from edgecal.camera import StereoRig
-from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path
+from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path, read_settings, section_keys, setting
 from edgecal.detection.params import DetectorParams, load_params
 from edgecal.drivers.spec import SourceSpec, spec_from_config
 from edgecal.errors import ConfigError, EdgecalError, InputError, exception_summary, quote
-from edgecal.pose.types import PoseSettings, QualityBounds
+from edgecal.pose.types import PoseSettings
 from edgecal.publish.curve import ServerKeys, load_server_keys, read_key_file
 from edgecal.publish.publisher import DEFAULT_ENDPOINT, HANDSHAKE_TIMEOUT_S, endpoint_problem, is_local_endpoint
 from edgecal.publish.sink_settings import OUTPUT_FIELDS, OutputSettings, read_outputs
@@ -40,25 +42,71 @@ from edgecal.targets import Target, load_target
 
 @dataclass(frozen=True)
 class LoopSettings:
-    """Timing of the loop itself."""
+    """Timing of the loop itself (latest-frame-wins is the source's ``latest_only``)."""
 
-    latest_frame_wins: bool = True     # read through a latest-frame-wins wrapper (latency never grows)
-    status_period_s: float = 1.0       # log + status message + watchdog period
-    camera_lost_after_s: float = 2.0   # no frame for this long: close the camera and reopen it
-    reconnect_min_s: float = 0.5       # first wait before reopening; doubles up to reconnect_max_s
-    reconnect_max_s: float = 10.0
-    stop_at_end: bool = True           # a finite source (a replay) that ends stops the loop (exit 0)
+    status_period_s: float = setting(1.0, doc="log + status message + watchdog period (s)", minimum=0.05,
+                                     maximum=60)
+    camera_lost_after_s: float = setting(2.0, doc="no frame for this long: close the camera and reopen it (s)",
+                                         minimum=0.1, maximum=600)
+    reconnect_min_s: float = setting(0.5, doc="first wait before reopening; doubles up to reconnect_max_s (s)",
+                                     positive=True, maximum=3600)
+    reconnect_max_s: float = setting(10.0, doc="longest wait between reopen attempts (s)", positive=True,
+                                     maximum=3600)
+    stop_at_end: bool = setting(True, doc="a finite source (a replay) that ends stops the loop (exit 0)")
+
+    def config_problem(self) -> tuple[str, str] | None:
+        """The back-off's ceiling below its floor."""
+        if self.reconnect_max_s < self.reconnect_min_s:
+            return ("reconnect_max_s", f"must be at least reconnect_min_s ({self.reconnect_min_s:g})")
+        return None
+
+
+# Keys of the loop section that moved elsewhere -> what to write instead.
+RETIRED_LOOP_KEYS = {"latest_frame_wins": "set source.latest_only instead (true by default in the live loop: "
+                                          "the source's reader keeps only the newest frame)"}
+
+
+def _read_curve(r: ConfigReader, key: str) -> ServerKeys | None:
+    """``curve: {server_key, client_keys}``: both key files checked, each error naming its field."""
+    if r.data[key] is None:
+        return None
+    s = r.section(key)
+    s.reject_unknown(("server_key", "client_keys"))
+    server_key = Path(s.string("server_key")).expanduser()
+    client_keys = Path(s.string("client_keys")).expanduser()
+    try:
+        read_key_file(server_key, need_secret=True)    # its own field named when it is the wrong one
+    except InputError as exc:
+        raise s.fail("server_key", f"cannot be used: {exc}") from None
+    try:
+        return load_server_keys(server_key, client_keys)
+    except InputError as exc:
+        raise s.fail("client_keys", f"cannot be used: {exc}") from None
 
 
 @dataclass(frozen=True)
 class PublishSettings:
-    """Where and how poses are published."""
+    """Where and how poses are published (the ``publish:`` section also holds the OutputSettings)."""
 
-    endpoint: str = DEFAULT_ENDPOINT
-    allow_remote: bool = False
-    hwm: int = 4
-    handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S
-    curve: ServerKeys | None = None     # required beyond loopback; optional (and then enforced) on it
+    endpoint: str = setting(DEFAULT_ENDPOINT, doc="the ZeroMQ PUB endpoint (loopback unless allow_remote)")
+    allow_remote: bool = setting(False, doc="bind beyond the loopback interface on purpose (needs curve)")
+    hwm: int = setting(4, doc="messages queued per subscriber before they are dropped", minimum=1, maximum=1000)
+    handshake_timeout_s: float = setting(HANDSHAKE_TIMEOUT_S, doc="a connection that has not spoken ZeroMQ by then "
+                                                                  "is dropped (s)", minimum=0.1, maximum=60)
+    # required beyond loopback; optional (and then enforced) on it
+    curve: ServerKeys | None = setting(None, doc="CURVE keys: {server_key, client_keys} (`edgecal keys`)",
+                                       read=_read_curve)
+
+    def config_problem(self) -> tuple[str, str] | None:
+        """An endpoint that cannot be bound, or one beyond loopback without keys."""
+        problem = endpoint_problem(self.endpoint, self.allow_remote)
+        if problem is not None:
+            return ("endpoint", f"{problem} (got {quote(self.endpoint)})")
+        if self.curve is None and not is_local_endpoint(self.endpoint):
+            return ("curve", f"is missing: beyond the loopback interface ({quote(self.endpoint)}) only subscribers "
+                             "with a known key may listen; give curve.server_key and curve.client_keys "
+                             "(`edgecal keys` makes key pairs)")
+        return None
 
 
 @dataclass(frozen=True)
@@ -90,70 +138,10 @@ def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
     raise r.fail(key, f"names a file that does not exist: {quote(name)}")
 
 
-def _read_pose(r: ConfigReader) -> PoseSettings:
-    r.reject_unknown(("triangulation", "covariance_scale", "corner_noise_px", "outlier_sigmas", "outlier_min_px",
-                      "min_corners", "max_rms_px", "max_position_std_mm", "max_rotation_std_deg"))
-    d, b = PoseSettings(), QualityBounds()
-    bounds = QualityBounds(
-        min_corners=r.integer("min_corners", b.min_corners, minimum=3),
-        max_rms_px=r.number("max_rms_px", b.max_rms_px, positive=True),
-        max_position_std_mm=r.number("max_position_std_mm", b.max_position_std_mm, positive=True),
-        max_rotation_std_deg=r.number("max_rotation_std_deg", b.max_rotation_std_deg, positive=True))
-    return PoseSettings(
-        triangulation=r.string("triangulation", d.triangulation, choices=("optimal", "linear")),
-        covariance_scale=r.string("covariance_scale", d.covariance_scale,
-                                  choices=("model", "max", "residual", "noise")),
-        corner_noise_px=r.number("corner_noise_px", d.corner_noise_px, positive=True),
-        outlier_sigmas=r.number("outlier_sigmas", d.outlier_sigmas, minimum=2.0),
-        outlier_min_px=r.number("outlier_min_px", d.outlier_min_px, positive=True),
-        bounds=bounds)
-
-
-def _read_curve(r: ConfigReader) -> ServerKeys:
-    r.reject_unknown(("server_key", "client_keys"))
-    server_key = Path(r.string("server_key")).expanduser()
-    client_keys = Path(r.string("client_keys")).expanduser()
-    try:
-        read_key_file(server_key, need_secret=True)    # its own field named when it is the wrong one
-    except InputError as exc:
-        raise r.fail("server_key", f"cannot be used: {exc}") from None
-    try:
-        return load_server_keys(server_key, client_keys)
-    except InputError as exc:
-        raise r.fail("client_keys", f"cannot be used: {exc}") from None
-
-
-def _read_publish(r: ConfigReader) -> PublishSettings:
-    r.reject_unknown(("endpoint", "allow_remote", "hwm", "handshake_timeout_s", "curve")
-                     + OUTPUT_FIELDS)  # outputs: read_outputs
-    endpoint = r.string("endpoint", DEFAULT_ENDPOINT)
-    allow = r.boolean("allow_remote", False)
-    problem = endpoint_problem(endpoint, allow)
-    if problem is not None:
-        raise r.fail("endpoint", f"{problem} (got {quote(endpoint)})")
-    curve = _read_curve(r.section("curve")) if r.has("curve") else None
-    if curve is None and not is_local_endpoint(endpoint):
-        raise r.fail("curve", f"is missing: beyond the loopback interface ({quote(endpoint)}) only subscribers "
-                              "with a known key may listen; give curve.server_key and curve.client_keys "
-                              "(`edgecal keys` makes key pairs)")
-    return PublishSettings(endpoint, allow, r.integer("hwm", 4, minimum=1, maximum=1000),
-                           r.number("handshake_timeout_s", HANDSHAKE_TIMEOUT_S, minimum=0.1, maximum=60), curve)
-
-
-def _read_loop(r: ConfigReader) -> LoopSettings:
-    r.reject_unknown(("latest_frame_wins", "status_period_s", "camera_lost_after_s", "reconnect_min_s",
-                      "reconnect_max_s", "stop_at_end"))
-    d = LoopSettings()
-    lo = r.number("reconnect_min_s", d.reconnect_min_s, positive=True, maximum=3600)
-    hi = r.number("reconnect_max_s", d.reconnect_max_s, positive=True, maximum=3600)
-    if hi < lo:
-        raise r.fail("reconnect_max_s", f"must be at least reconnect_min_s ({lo:g})")
-    return LoopSettings(
-        latest_frame_wins=r.boolean("latest_frame_wins", d.latest_frame_wins),
-        status_period_s=r.number("status_period_s", d.status_period_s, minimum=0.05, maximum=60),
-        camera_lost_after_s=r.number("camera_lost_after_s", d.camera_lost_after_s, minimum=0.1, maximum=600),
-        reconnect_min_s=lo, reconnect_max_s=hi,
-        stop_at_end=r.boolean("stop_at_end", d.stop_at_end))
+def read_publish(r: ConfigReader) -> tuple[PublishSettings, OutputSettings]:
+    """The ``publish:`` section: the ZeroMQ stream's settings and the outputs beside it (sink_settings)."""
+    return (read_settings(PublishSettings, r, ignore=OUTPUT_FIELDS),
+            read_outputs(r, ignore=section_keys(PublishSettings)))
 
 
 def load_stereo_cameras(path: Path, field: str, source: str) -> StereoRig:
@@ -173,24 +161,15 @@ def load_stereo_cameras(path: Path, field: str, source: str) -> StereoRig:
     return rig.stereo
 
 
-def _read_tracking(r: ConfigReader) -> TrackingSettings:
-    r.reject_unknown(("enabled", "max_gap_s", "min_confirmed_fraction"))
-    d = TrackingSettings()
-    return TrackingSettings(
-        enabled=r.boolean("enabled", d.enabled),
-        max_gap_s=r.number("max_gap_s", d.max_gap_s, positive=True, maximum=10.0),
-        min_confirmed_fraction=r.number("min_confirmed_fraction", d.min_confirmed_fraction, positive=True,
-                                        maximum=1.0))
-
-
 MONO_DRIVERS = ("v4l2", "aravis", "dc1394")
 
 
 def _declared_sizes(spec: SourceSpec) -> list[tuple[str, tuple[int, int]]]:
     """(which camera, (width, height)) for each camera whose image size the config sets."""
     parts = [("left", spec.left), ("right", spec.right)] if spec.driver == "stereo" else [("source", spec)]
-    return [(name, (p.settings.width, p.settings.height)) for name, p in parts
-            if p is not None and p.settings.width is not None and p.settings.height is not None]
+    sizes = [(name, getattr(p.settings, "width", None), getattr(p.settings, "height", None)) for name, p in parts
+             if p is not None]
+    return [(name, (w, h)) for name, w, h in sizes if w is not None and h is not None]
 
 
 def check_source(r: ConfigReader, spec: SourceSpec, rig_size: tuple[int, int]) -> None:
@@ -233,7 +212,8 @@ def load_live_config(path: str | Path) -> LiveConfig:
     src = str(path)
     r = ConfigReader(load_yaml_mapping(path), src)
     r.reject_unknown(LIVE_FIELDS)
-    source = spec_from_config(r.section("source"))
+    # The live loop always works on the newest frame unless the source says otherwise.
+    source = spec_from_config(r.section("source"), defaults={"latest_only": True})
     rig_path = _resolve(r, "rig", packaged=False)
     cameras = load_stereo_cameras(rig_path, "rig", src)
     check_source(r, source, cameras.image_size)
@@ -248,9 +228,8 @@ def load_live_config(path: str | Path) -> LiveConfig:
             detector = load_params(_resolve(r, "detector", packaged=True))
         except ConfigError as exc:
             raise ConfigError(f"{src}: field 'detector': {exc}") from None
-    pose = _read_pose(r.section("pose", {}))
-    publish = _read_publish(r.section("publish", {}))
-    outputs = read_outputs(r.section("publish", {}))
-    loop = _read_loop(r.section("loop", {}))
-    tracking = _read_tracking(r.section("tracking", {}))
+    pose = read_settings(PoseSettings, r.section("pose", {}))
+    publish, outputs = read_publish(r.section("publish", {}))
+    loop = read_settings(LoopSettings, r.section("loop", {}), retired=RETIRED_LOOP_KEYS)
+    tracking = read_settings(TrackingSettings, r.section("tracking", {}))
     return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path), tracking, outputs)

@@ -22,8 +22,7 @@ import numpy as np
 import edgecal
 from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
-from edgecal.drivers.base import Source, StereoFrame, StereoSource
-from edgecal.drivers.latest import LatestFrameSource, LatestStereoFrameSource
+from edgecal.drivers.base import Source, StereoFrame
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, EdgecalError, InputError, clip, exception_summary
 from edgecal.pose import Pose, estimate_pose
@@ -270,10 +269,7 @@ class LiveLoop:
         spec = self.config.source
         source = None
         try:
-            source = self.source_factory(spec)
-            if self.config.loop.latest_frame_wins and not isinstance(source, LatestFrameSource):
-                wrapper = LatestStereoFrameSource if isinstance(source, StereoSource) else LatestFrameSource
-                source = wrapper(source, spec.settings.timeout_s)
+            source = self.source_factory(spec)    # latest-frame-wins: the source's latest_only
             source.open()
         except Exception as exc:  # DeviceError, InputError (a preload too large) or a driver's bug
             if not isinstance(exc, EdgecalError):
@@ -570,7 +566,7 @@ class LiveLoop:
             with self._io:
                 old_sinks, self._sinks = self._sinks, sinks
             close_all(old_sinks)
-        if new.source != old.source or new.loop.latest_frame_wins != old.loop.latest_frame_wins:
+        if new.source != old.source:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
             self._revert_to = revert_to

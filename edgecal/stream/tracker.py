@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgecal.camera import StereoRig
+from edgecal.config import setting
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.pose.predict import extrapolate_pose, predict_corners
 from edgecal.pose.types import Pose
@@ -37,9 +38,11 @@ class TrackingSettings:
                              confirm for the tracked frame to stand; fewer and the frame is searched.
     """
 
-    enabled: bool = True
-    max_gap_s: float = 0.5
-    min_confirmed_fraction: float = 0.6
+    enabled: bool = setting(True, doc="false: search every frame in full")
+    max_gap_s: float = setting(0.5, doc="predict only from a pose at most this much older (s)", positive=True,
+                               maximum=10.0)
+    min_confirmed_fraction: float = setting(0.6, doc="share of the predicted corners to confirm, else search",
+                                            positive=True, maximum=1.0)
 
 
 def confirmed_fraction(predictions: list[CornerPrediction], detections: list[Detection]) -> float:
