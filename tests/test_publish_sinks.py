@@ -68,7 +68,7 @@ def _config(tmp_path: Path, folder: Path, publish: dict, source: dict | None = N
     doc = yaml.safe_load(cfg.read_text())
     doc["publish"].update(publish)
     if source is not None:
-        doc["source"] = source
+        doc["source"] = {"latest_only": False, **source}    # every frame, as the replay above
     cfg.write_text(yaml.safe_dump(doc))
     return cfg
 
