@@ -243,7 +243,6 @@ def settings_fields(cls: type) -> list[tuple[dataclasses.Field, Rule, Any]]:
             if _RULE in f.metadata]
 
 
-@functools.cache
 def section_keys(cls: type) -> tuple[str, ...]:
     """The keys a section of ``cls`` accepts (the fields of inline sub-sections included)."""
     keys: list[str] = []
@@ -274,7 +273,7 @@ def _read_value(r: ConfigReader, key: str, rule: Rule, kind: Any) -> Any:
     if kind is str:
         value = r.string(key, choices=rule.choices)
         return rule.synonyms.get(value, value)
-    if dataclasses.is_dataclass(kind):
+    if isinstance(kind, type) and dataclasses.is_dataclass(kind):
         return read_settings(kind, r.section(key))
     raise TypeError(f"a settings field of type {kind!r} needs its own reader (setting(read=...))")
 
@@ -313,7 +312,7 @@ def read_settings(cls: type[T], r: ConfigReader, *, base: T | None = None, ignor
             values[f.name] = _read_value(r, f.name, rule, kind)
         elif base is None and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise r.fail(f.name, "is missing")
-    obj = dataclasses.replace(base, **values) if base is not None else cls(**values)
+    obj: Any = dataclasses.replace(base, **values) if base is not None else cls(**values)  # type: ignore[type-var]
     check = getattr(obj, "config_problem", None)
     problem = check() if check is not None else None
     if problem is not None:
@@ -325,7 +324,7 @@ def describe_settings(cls: type, prefix: str = "") -> list[tuple[str, Any, str]]
     """(dotted key, default, doc) of every field of a section and its sub-sections (docs and tests)."""
     out: list[tuple[str, Any, str]] = []
     for f, rule, kind in settings_fields(cls):
-        if dataclasses.is_dataclass(kind) and rule.read is None:
+        if isinstance(kind, type) and dataclasses.is_dataclass(kind) and rule.read is None:
             out.extend(describe_settings(kind, prefix if rule.inline else f"{prefix}{f.name}."))
             continue
         default = f.default if f.default is not dataclasses.MISSING else (
