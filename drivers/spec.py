@@ -42,8 +42,8 @@ from __future__ import annotations
 import importlib
 import urllib.parse
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from typing import Any
+from dataclasses import dataclass, fields
+from typing import Any, Generic, TypeVar
 
 import yaml
 
@@ -117,15 +117,22 @@ def buffers_setting() -> Any:
     return setting(4, doc="capture buffers queued in the driver", minimum=2, maximum=64)
 
 
+S = TypeVar("S", bound=SourceSettings)
+
+
 @dataclass(frozen=True)
-class SourceSpec:
-    """A parsed, validated source: which driver, which device/file, with which settings."""
+class SourceSpec(Generic[S]):
+    """A parsed, validated source: which driver, which device/file, with which settings.
+
+    ``settings`` is the driver's own class (settings_class(driver)); a driver that wants them typed takes
+    a ``SourceSpec[ItsSettings]``.
+    """
 
     driver: str
-    target: str = ""
-    settings: SourceSettings = field(default_factory=SourceSettings)   # settings_class(driver)
-    left: SourceSpec | None = None
-    right: SourceSpec | None = None
+    target: str
+    settings: S
+    left: SourceSpec[Any] | None = None
+    right: SourceSpec[Any] | None = None
 
     @property
     def uri(self) -> str:
