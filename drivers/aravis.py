@@ -76,7 +76,7 @@ def load_aravis() -> Any:
 def convert_buffer(data: bytes, width: int, height: int, pixel_format: str) -> np.ndarray:
     """A GenICam buffer's bytes as a grey (uint8/uint16) or BGR uint8 image (always a copy)."""
     dtype, code, channels = _FORMATS[pixel_format]
-    arr = np.frombuffer(data, dtype=dtype)
+    arr: np.ndarray = np.frombuffer(data, dtype=dtype)
     n = width * height * channels
     if arr.size < n:
         raise DeviceError(f"buffer of {arr.size} pixels is too small for {width}x{height} {pixel_format}")
@@ -311,7 +311,9 @@ class AravisSource(Source):
         except GLib.Error as exc:
             raise DeviceError(f"{self.uri}: the camera refused {what}={value} ({exc.message})") from None
         self._read_controls()
-        return float(self.exposure_us if what == "exposure_us" else self.gain_db or 0.0)
+        now = self.exposure_us if what == "exposure_us" else self.gain_db or 0.0
+        assert now is not None  # the camera took an exposure time, so it has the control
+        return float(now)
 
     def trigger(self) -> None:
         """Fire a software trigger (``trigger: software``)."""

@@ -402,7 +402,7 @@ def replay_contents(spec: SourceSpec) -> ReplayContents:
     if isinstance(source, StereoReplaySource):
         frames, stereo = len(source.pairs), True
         first = source.pairs[0][0].file if source.pairs else None
-    elif source.video is not None:
+    elif isinstance(source, ReplaySource) and source.video is not None:
         cap = cv2.VideoCapture(str(source.video))
         try:
             ok, image = cap.read() if cap.isOpened() else (False, None)
@@ -411,6 +411,7 @@ def replay_contents(spec: SourceSpec) -> ReplayContents:
         size = (int(image.shape[1]), int(image.shape[0])) if ok and image is not None else None
         return ReplayContents(int(ok), False, size)
     else:
+        assert isinstance(source, ReplaySource)  # open_replay makes one of the two
         frames, stereo = len(source.items), False
         first = source.items[0].file if source.items else None
     size = None

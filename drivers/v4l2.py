@@ -170,7 +170,7 @@ class V4L2Source(Source):
         self._cap = cap
         try:
             if s.pixel_format:
-                cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*s.pixel_format.ljust(4)))
+                cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*s.pixel_format.ljust(4)))
                 if s.pixel_format in _RAW_FORMATS:
                     cap.set(cv2.CAP_PROP_CONVERT_RGB, 0)
             if s.width:

@@ -115,12 +115,13 @@ class FoxgloveSink(Sink):
         self.outputs = outputs
         self._ctx = foxglove.Context()
         try:
-            self.server = foxglove.start_server(name="edgecal", host=settings.host, port=settings.port,
-                                                context=self._ctx, message_backlog_size=BACKLOG)
+            server = foxglove.start_server(name="edgecal", host=settings.host, port=settings.port,
+                                           context=self._ctx, message_backlog_size=BACKLOG)
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own (Rust) error types for a bind failure
             raise DeviceError(f"cannot serve Foxglove on {settings.host}:{settings.port} ({exc}); "
                               "is another edgecal running? (publish.foxglove.port)") from None
-        self.port = int(self.server.port)
+        self.server: foxglove.WebSocketServer | None = server
+        self.port = int(server.port)
         self._images = {s: CompressedImageChannel(f"/edgecal/{s}/image", context=self._ctx) for s in SIDES}
         self._corners = {s: ImageAnnotationsChannel(f"/edgecal/{s}/corners", context=self._ctx) for s in SIDES}
         self._tf = FrameTransformsChannel("/tf", context=self._ctx)
@@ -160,8 +161,8 @@ class FoxgloveSink(Sink):
         if self._period_ns is None:
             return
         now = time.monotonic_ns()
-        if now < self._next_image_ns or not any(c.has_sinks() for c in (*self._images.values(),
-                                                                        *self._corners.values())):
+        if now < self._next_image_ns or not (any(c.has_sinks() for c in self._images.values())
+                                             or any(c.has_sinks() for c in self._corners.values())):
             return
         self._next_image_ns = now + self._period_ns
         with self._wake:
@@ -196,6 +197,7 @@ class FoxgloveSink(Sink):
                 if self._stopping:
                     return
                 out, self._mailbox = self._mailbox, None
+            assert out is not None  # woken with a frame in the mailbox
             try:
                 self._send_images(out)
             except Exception as exc:  # noqa: BLE001 - a frame that fails to encode must not end the thread
