@@ -63,6 +63,7 @@ from edgecal.calibration.stereo import calibrate_box_stereo, triangulate  # noqa
 from edgecal.calibration.types import CornerSet, RigidTransform  # noqa: E402
 from edgecal.camera import CameraModel  # noqa: E402
 from edgecal.images import load_grey  # noqa: E402
+from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.synth.scenes import box_stereo, box_target  # noqa: E402
 from edgecal.targets import load_target, planar_target  # noqa: E402
 
@@ -520,7 +521,7 @@ def main() -> int:
 def _planar_sim_views(left: CameraModel, right: CameraModel, rig: RigidTransform, size: tuple[int, int], n: int,
                       noise: float, seed: int, spread: float = 1.0) -> tuple[list[CornerSet], list[CornerSet]]:
     """``n`` stereo views of a 9x6 board (30 mm) whose corners are all in both images, exact + noise."""
-    from edgecal.calibration.simulate import look_at, project_target
+    from edgecal.synth.corners import project_target
     target = planar_target(9, 6, 30.0)
     rng = np.random.default_rng(seed)
     centre = np.array([120.0, 75.0, 0.0])
@@ -531,7 +532,7 @@ def _planar_sim_views(left: CameraModel, right: CameraModel, rig: RigidTransform
         eye = centre + rng.uniform(300.0, 500.0) * np.array([np.sin(tilt[0]), np.sin(tilt[1]),
                                                              -np.cos(tilt[0]) * np.cos(tilt[1])])
         aim = centre + rng.uniform(-1, 1, 3) * np.array([220.0, 150.0, 0.0]) * spread
-        pl = look_at(eye, aim, up=np.array([0.0, -1.0, 0.0]))
+        pl = RigidTransform.looking_at(eye, aim, up=np.array([0.0, -1.0, 0.0]))
         pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
         a = project_target(target, left, pl, size, noise, rng)
         b = project_target(target, right, pr, size, noise, rng)
@@ -705,4 +706,5 @@ def print_urban(res: dict | None) -> None:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     sys.exit(main())

@@ -32,6 +32,7 @@ import numpy as np  # noqa: E402
 import edgecal  # noqa: E402
 from edgecal.detection.tracking import track_boards  # noqa: E402
 from edgecal.detection.types import CornerPrediction, Detection  # noqa: E402
+from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.synth.photometric import Photometric  # noqa: E402
 from edgecal.synth.scenes import planar_view  # noqa: E402
 from edgecal.synth.view import RenderedView  # noqa: E402
@@ -137,4 +138,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     sys.exit(main())

@@ -10,7 +10,7 @@ ground truth (or reference corners) over the found boards, median and p90 ms per
 of each to edgecal. The first call of every detector (numba JIT, lazy initialisation) is timed apart
 and printed as warm-up; it is not in the per-image times. Sets whose data is absent are skipped.
 
-Scoring (edgecal.evaluate): edgecal must number boards as the truth does, up to the board's own
+Scoring (edgecal.scoring): edgecal must number boards as the truth does, up to the board's own
 symmetries; the references know nothing of our numbering, so any grid symmetry is accepted for them.
 OpenCV's detectors take one board size per call and return at most one board; they are called once per
 distinct board size of the target. The libcbdetect binding reports how many boards it saw but returns
@@ -45,22 +45,22 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from edgecal.errors import EdgecalError  # noqa: E402
-from edgecal.evaluate import (  # noqa: E402
+from edgecal.fileio import write_atomic  # noqa: E402
+from edgecal.images import IMAGE_SUFFIXES, load_grey  # noqa: E402
+from edgecal.runtime import tune_allocator  # noqa: E402
+from edgecal.scoring import (  # noqa: E402
     FoundGrid,
-    GroundTruth,
     ImageScore,
     corner_rms,
     grid_is_plausible,
-    load_ground_truth,
-    load_ocamcalib_json,
-    load_opencv_corners_dat,
     percentile,
     score_image,
-    truth_targets,
 )
-from edgecal.fileio import write_atomic  # noqa: E402
-from edgecal.images import IMAGE_SUFFIXES, load_grey  # noqa: E402
+from edgecal.synth.truth import GroundTruth, load_ground_truth, truth_targets  # noqa: E402
 from edgecal.targets import Board, Target, planar_target  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling module, also when a test imports this file
+from references import load_ocamcalib_json, load_opencv_corners_dat  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = Path(os.environ.get("EDGECAL_DATA", REPO.parent / "shared" / "data"))
@@ -207,8 +207,8 @@ def rendered_sets(wanted: Callable[[str], bool], per_set: int = 4, seed: int = 2
     faintly noisy renders (the corner RMS target). Deterministic seeds; only wanted sets are rendered.
     """
     try:
-        from edgecal.evaluate import ground_truth_from_mapping
         from edgecal.synth.scenes import planar_view
+        from edgecal.synth.truth import ground_truth_from_mapping
     except ImportError as exc:
         print(f"# rendered sets skipped: edgecal.synth not importable ({exc})", file=sys.stderr)
         return []
@@ -379,7 +379,7 @@ class Detector:
 
     name: str
     run: Callable | None
-    policy: str  # scoring policy of edgecal.evaluate
+    policy: str  # scoring policy of edgecal.scoring
     needs_target: bool = True
     status: str = "ok"
     warmup_ms: float = float("nan")
@@ -810,4 +810,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     sys.exit(main())

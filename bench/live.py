@@ -50,6 +50,7 @@ import zmq  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import edgecal  # noqa: E402
+from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.stream import LiveLoop, load_live_config  # noqa: E402
 
 THRESHOLDS = {"fps": 30.0, "p99_ms": 33.0, "position_mm": 1.0, "rotation_deg": 0.1}
@@ -384,4 +385,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     sys.exit(main())

@@ -32,6 +32,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 import edgecal  # noqa: E402
+from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.targets import Target, planar_target  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -237,4 +238,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     sys.exit(main())

@@ -23,6 +23,7 @@ from collections.abc import Callable  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
+from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.synth import scenes  # noqa: E402
 from edgecal.synth.camera import _RAY_CACHE, corner_ray_grid  # noqa: E402
 from edgecal.synth.clutter import clutter_background  # noqa: E402
@@ -120,4 +121,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     raise SystemExit(main())

@@ -36,6 +36,7 @@ import zmq  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from live import write_rig  # noqa: E402
 
+from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.stream import LiveLoop, load_live_config  # noqa: E402
 
 
@@ -192,4 +193,5 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     sys.exit(main())

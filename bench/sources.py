@@ -40,6 +40,8 @@ import numpy as np  # noqa: E402
 
 from edgecal.drivers import open_source  # noqa: E402
 
+from edgecal.runtime import tune_allocator  # noqa: E402
+
 LOCK = Path("/tmp/edgecal-arv-fake-gv.lock")   # shared with the tests: one fake camera at a time
 
 
@@ -246,4 +248,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    tune_allocator()  # as every edgecal command does (importing edgecal does not)
     main()

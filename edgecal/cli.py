@@ -15,6 +15,8 @@ import sys
 from collections.abc import Sequence
 
 from edgecal.errors import EdgecalError
+from edgecal.runtime import tune_allocator
+from edgecal.version import __version__
 
 # Order here is the order in `edgecal --help`.
 COMMAND_MODULES = (
@@ -51,7 +53,6 @@ def plain_text(text: str | None) -> str | None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every sub-command registered."""
-    from edgecal import __version__
     parser = argparse.ArgumentParser(
         prog="edgecal",
         description="Chessboard detection, one-shot stereo calibration and live robot pose.")
@@ -77,6 +78,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    # Every command is its own process and most process images (the daemon for weeks): tune glibc here,
+    # not on `import edgecal`, which must leave a host program's allocator alone.
+    tune_allocator()
     try:
         return int(args._run(args) or 0)
     except EdgecalError as exc:

@@ -1,9 +1,10 @@
-"""Process-level tuning that edgecal applies once, on import.
+"""Process-level tuning that edgecal's commands (edgecal.cli) and benchmarks apply once, at start.
 
 glibc hands every allocation above 128 KiB straight to mmap and gives it back on free, so each new image
 buffer (every frame, every intermediate image) costs a round of page faults: on a small robot computer
 that made plain image arithmetic 5-7x slower than the arithmetic itself. Raising the mmap and trim
 thresholds lets freed buffers be reused from the heap. Set EDGECAL_KEEP_MALLOC=1 to leave glibc as it is.
+Importing the library does not do it: the allocator belongs to the program, which may have its own needs.
 """
 
 from __future__ import annotations

@@ -11,10 +11,13 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from edgecal.evaluate import ground_truth_from_mapping, score_image
+from edgecal.errors import InputError
+from edgecal.scoring import score_image
 from edgecal.synth.scenes import planar_view
+from edgecal.synth.truth import ground_truth_from_mapping
 
 BENCH = Path(__file__).resolve().parents[1] / "bench" / "detect.py"
 
@@ -111,3 +114,36 @@ def test_calib_targets_counts_only_grids_of_the_asked_size(bench, item):
     other = bench._target_from_boards([{"name": "b", "cols": 6, "rows": 5}], "6x5")
     found, reported = det.run(item.grey, other)
     assert found == [] and reported == 0
+
+
+def test_load_opencv_corners_dat(bench, tmp_path):
+    r, c = np.mgrid[0:2, 0:3]
+    ids = np.stack([c.ravel(), r.ravel()], axis=1)  # row-major (col, row), as OpenCV lists them
+    xy = 100.0 + ids * np.array([20.0, 18.0]) + ids[:, ::-1] * np.array([-4.0, 3.0])
+    flat = ", ".join(f"{v:.6e}" for v in xy.ravel())
+    p = tmp_path / "c.dat"
+    p.write_text(f"isFound: 1\ncorners:\n   rows: 2\n   cols: 3\n   data: [ {flat} ]\n")
+    gt = bench.load_opencv_corners_dat(p, "c.png", (320, 240), 3, 2)
+    assert not gt.exact
+    assert np.allclose(gt.boards[0].corners, xy, atol=1e-5)
+    assert (gt.boards[0].ids == ids).all()
+    with pytest.raises(InputError, match="expected 10"):
+        bench.load_opencv_corners_dat(p, "c.png", (320, 240), 5, 1)
+
+
+def test_load_ocamcalib_json_puts_the_cols_axis_first(bench, tmp_path):
+    # 3 x 2 inner corners, the board's Y axis carries the 3 columns (as in Fisheye190Pts.json)
+    pts, xyz = [], []
+    for x in range(2):
+        for y in range(3):
+            xyz.append([x * 30.0, y * 30.0, 0.0])
+            pts.append([10.0 + 20 * y, 5.0 + 20 * x])
+    data = {"inner_corners": [3, 2], "square_mm": 30,
+            "views": [{"image": "v1.jpg", "points_xy_zero_based": pts, "board_XYZ_mm": xyz}]}
+    p = tmp_path / "pts.json"
+    p.write_text(json.dumps(data))
+    refs = bench.load_ocamcalib_json(p)
+    board = refs["v1.jpg"].boards[0]
+    assert (board.cols, board.rows) == (3, 2)
+    assert board.ids[:, 0].max() == 2 and board.ids[:, 1].max() == 1
+    assert np.allclose(board.corners[board.ids[:, 0] == 2][:, 0], 50.0)

@@ -6,15 +6,15 @@ import pytest
 from edgecal.calibration.acceptance import acceptance_problems, require_acceptable
 from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.settings import Acceptance, load_calibration_settings
-from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.errors import CalibrationRejected, ConfigError
+from edgecal.synth.corners import cube_box_target, project_target, stereo_truth
 
 SIZE = (640, 480)
 
 
 def _cal(noise):
     cam, _, pose, _ = stereo_truth()
-    return calibrate_box_mono(project_target(box_target(), cam, pose, SIZE, noise, np.random.default_rng(2)), SIZE)
+    return calibrate_box_mono(project_target(cube_box_target(), cam, pose, SIZE, noise, np.random.default_rng(2)), SIZE)
 
 
 def test_good_calibration_passes_default_bounds():

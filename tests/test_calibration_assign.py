@@ -3,9 +3,9 @@
 import numpy as np
 
 from edgecal.calibration.assign import assign, assign_stereo, rotate_ids, symmetry_warnings
-from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.types import RigidTransform
 from edgecal.detection.types import Detection
+from edgecal.synth.corners import cube_box_target, project_target, stereo_truth
 from edgecal.targets import Board, Target
 
 SIZE = (640, 480)
@@ -35,7 +35,7 @@ def test_rotate_ids_are_rotations():
 
 
 def test_same_size_boards_are_told_apart_by_geometry():
-    t = box_target()
+    t = cube_box_target()
     cam, _, pose, _ = stereo_truth()
     cs = project_target(t, cam, pose, SIZE, 0.1)
     a = assign(_detections(cs, t), t)
@@ -47,7 +47,7 @@ def test_same_size_boards_are_told_apart_by_geometry():
 
 def test_even_board_orientation_is_resolved():
     # 4x4 boards look the same turned by 90/180/270 degrees: geometry must pick the orientation
-    t = box_target(inner_corners=(4, 4), square_mm=18.0)
+    t = cube_box_target(inner_corners=(4, 4), square_mm=18.0)
     t = Target("box-odd-one", (t.boards[0], t.boards[1], Board("right", 5, 4, 14.0, t.boards[2].origin_mm,
                                                                t.boards[2].x_axis, t.boards[2].y_axis)))
     cam, _, pose, _ = stereo_truth()
@@ -58,14 +58,14 @@ def test_even_board_orientation_is_resolved():
 
 
 def test_symmetric_target_warns_and_names_a_board():
-    t = box_target(inner_corners=(4, 4), square_mm=18.0)
+    t = cube_box_target(inner_corners=(4, 4), square_mm=18.0)
     warnings = symmetry_warnings(t)
     assert warnings and "symmetric" in warnings[0] and "different size" in warnings[0]
-    assert symmetry_warnings(box_target()) == []  # odd boards: the colours fix the orientation
+    assert symmetry_warnings(cube_box_target()) == []  # odd boards: the colours fix the orientation
 
 
 def test_stereo_assignment_labels_both_images_alike_on_a_symmetric_target():
-    t = box_target(inner_corners=(4, 4), square_mm=18.0)
+    t = cube_box_target(inner_corners=(4, 4), square_mm=18.0)
     cl, cr, pl, rig = stereo_truth()
     pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     left, right = project_target(t, cl, pl, SIZE), project_target(t, cr, pr, SIZE)
@@ -81,4 +81,4 @@ def test_stereo_assignment_labels_both_images_alike_on_a_symmetric_target():
 
 
 def test_nothing_of_the_target_gives_none():
-    assert assign([], box_target()) is None
+    assert assign([], cube_box_target()) is None

@@ -7,10 +7,10 @@ import yaml
 
 from edgecal.calibration.io import camera_info_paths, load_rig, write_calibration
 from edgecal.calibration.mono import calibrate_box_mono
-from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.stereo import calibrate_box_stereo
 from edgecal.calibration.types import RigidTransform
 from edgecal.errors import ConfigError, InputError
+from edgecal.synth.corners import cube_box_target, project_target, stereo_truth
 
 SIZE = (640, 480)
 
@@ -20,7 +20,7 @@ def stereo_cal():
     cl, cr, pl, rig = stereo_truth()
     pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     rng = np.random.default_rng(1)
-    t = box_target()
+    t = cube_box_target()
     return calibrate_box_stereo(project_target(t, cl, pl, SIZE, 0.1, rng), project_target(t, cr, pr, SIZE, 0.1, rng),
                                 SIZE)
 
@@ -72,7 +72,7 @@ def test_existing_file_is_not_replaced_without_force(tmp_path, stereo_cal):
 
 def test_mono_file(tmp_path):
     cam, _, pose, _ = stereo_truth()
-    cal = calibrate_box_mono(project_target(box_target(), cam, pose, SIZE, 0.05), SIZE)
+    cal = calibrate_box_mono(project_target(cube_box_target(), cam, pose, SIZE, 0.05), SIZE)
     out = tmp_path / "cam.yaml"
     write_calibration(cal, out)
     fs = cv2.FileStorage(str(out), cv2.FILE_STORAGE_READ)

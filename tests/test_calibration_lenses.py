@@ -11,10 +11,10 @@ from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.planar import calibrate_planar
 from edgecal.calibration.refine import Observation, RefineOptions, refine
 from edgecal.calibration.settings import Acceptance, PlanarSettings
-from edgecal.calibration.simulate import box_target, look_at, project_target, stereo_truth
 from edgecal.calibration.stereo import rectification_maps
 from edgecal.calibration.types import RigidTransform
 from edgecal.camera import CameraModel, project
+from edgecal.synth.corners import cube_box_target, project_target, stereo_truth
 from edgecal.targets import planar_target
 
 SIZE = (1280, 800)
@@ -32,7 +32,7 @@ def _lens_rig(lens: str) -> tuple[CameraModel, CameraModel, RigidTransform]:
                            np.array([0.4, -0.05, 0.0008, -0.0005, 0.01, 0.75, 0.02, 0.004]), SIZE)
         right = CameraModel(606.0, 606.6, 633.0, 404.0, "rational",
                             np.array([0.38, -0.04, -0.0006, 0.0004, 0.008, 0.73, 0.025, 0.003]), SIZE)
-    rot = look_at(np.zeros(3), np.array([0.05, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0])).rotation
+    rot = RigidTransform.looking_at(np.zeros(3), np.array([0.05, 0.0, 1.0]), up=np.array([0.0, -1.0, 0.0])).rotation
     return left, right, RigidTransform.from_rt(rot, np.array([-80.0, 0.5, 1.0]))
 
 
@@ -49,7 +49,7 @@ def _planar_views(left: CameraModel, right: CameraModel, rig: RigidTransform, n:
         dist = rng.uniform(250.0, 450.0)
         eye = centre_board + dist * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])
         aim = centre_board + rng.uniform(-1, 1, 3) * [250.0, 180.0, 0.0]
-        pl = look_at(eye, aim, up=np.array([0.0, -1.0, 0.0]))
+        pl = RigidTransform.looking_at(eye, aim, up=np.array([0.0, -1.0, 0.0]))
         pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
         a = project_target(target, left, pl, SIZE, noise, rng)
         b = project_target(target, right, pr, SIZE, noise, rng)
@@ -124,7 +124,7 @@ def test_fisheye_sigma_matches_the_spread() -> None:
 def test_box_mono_with_a_fisheye_lens() -> None:
     truth = _lens_rig("fisheye")[0]
     _, _, pose, _ = stereo_truth(image_size=SIZE, focal_px=truth.fx)
-    box = project_target(box_target(), truth, pose, SIZE, 0.05, np.random.default_rng(7))
+    box = project_target(cube_box_target(), truth, pose, SIZE, 0.05, np.random.default_rng(7))
     cal = calibrate_box_mono(box, SIZE, RefineOptions(distortion="fisheye"))
     assert cal.cameras[0].lens == "fisheye"
     assert abs(cal.cameras[0].fx / truth.fx - 1) < 0.01 and cal.rms_px < 0.1
@@ -134,8 +134,9 @@ def test_an_undetermined_lens_model_is_named() -> None:
     """k1..k6 of the rational model from two nearly frontal views: the solver names what it cannot determine."""
     left, right, rig = _lens_rig("rational")
     target = planar_target(9, 6, 30.0)
-    views = [project_target(target, left, look_at(np.array([120.0, 75.0, -z]), np.array([120.0, 75.0, 0.0]),
-                                                  up=np.array([0.0, -1.0, 0.0])), SIZE, 0.1)
+    views = [project_target(target, left, RigidTransform.looking_at(np.array([120.0, 75.0, -z]),
+                                                                    np.array([120.0, 75.0, 0.0]),
+                                                                    up=np.array([0.0, -1.0, 0.0])), SIZE, 0.1)
              for z in (500.0, 520.0)]
     cal = calibrate_planar(views, None, SIZE, RefineOptions(distortion="rational"), PlanarSettings(min_views=2))
     problems = acceptance_problems(cal, Acceptance())

@@ -6,16 +6,16 @@ import pytest
 
 from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.dlt import calibrate_dlt, decompose_projection
-from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.tsai import calibrate_tsai
 from edgecal.camera import CameraModel
+from edgecal.synth.corners import cube_box_target, project_target, stereo_truth
 
 SIZE = (640, 480)
 
 
 def _view(dist=(0, 0, 0, 0, 0), noise=0.0):
     cam, _, pose, _ = stereo_truth(dist=dist)
-    cs = project_target(box_target(), cam, pose, SIZE, noise)
+    cs = project_target(cube_box_target(), cam, pose, SIZE, noise)
     return cam, pose, cs
 
 
@@ -45,7 +45,7 @@ def test_tsai_recovers_camera_when_principal_point_is_centred():
     k = cam0.camera_matrix.copy()
     k[0, 2], k[1, 2] = (SIZE[0] - 1) / 2, (SIZE[1] - 1) / 2  # Tsai assumes the centre
     cam = CameraModel.from_opencv(k, np.array([-0.1, 0, 0, 0, 0.0]))
-    cs = project_target(box_target(), cam, pose, SIZE)
+    cs = project_target(cube_box_target(), cam, pose, SIZE)
     lin = calibrate_tsai(cs.object_mm, cs.image_px, SIZE)
     np.testing.assert_allclose(lin.camera_matrix, k, rtol=1e-6)
     np.testing.assert_allclose(lin.rotation, pose.rotation, atol=1e-7)

@@ -8,8 +8,8 @@ import pytest
 
 from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.planar import calibrate_planar, coverage
-from edgecal.calibration.simulate import look_at, project_target, stereo_truth
 from edgecal.calibration.types import CornerSet, RigidTransform
+from edgecal.synth.corners import project_target, stereo_truth
 from edgecal.targets import planar_target
 
 SIZE = (640, 480)
@@ -26,7 +26,7 @@ def _views(n=8, noise=0.1, seed=0):
         centre = np.array([100.0, 62.5, 0.0]) + rng.normal(0, 30, 3) * [1, 1, 0]
         tilt = np.radians(rng.uniform(-35, 35, 2))
         eye = centre + 480.0 * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])
-        pl = look_at(eye, centre, up=np.array([0.0, -1.0, 0.0]))
+        pl = RigidTransform.looking_at(eye, centre, up=np.array([0.0, -1.0, 0.0]))
         pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
         left.append(project_target(target, cl, pl, SIZE, noise, rng))
         right.append(project_target(target, cr, pr, SIZE, noise, rng))

@@ -7,10 +7,10 @@ from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.dlt import calibrate_dlt
 from edgecal.calibration.mono import calibrate_box_mono
 from edgecal.calibration.refine import Observation, RefineOptions, refine
-from edgecal.calibration.simulate import box_target, project_target, stereo_truth
 from edgecal.calibration.stereo import calibrate_box_stereo
 from edgecal.calibration.types import CornerSet, RigidTransform
 from edgecal.camera import CameraModel
+from edgecal.synth.corners import cube_box_target, project_target, stereo_truth
 
 SIZE = (640, 480)
 
@@ -19,7 +19,7 @@ def _stereo(noise, seed=0):
     cl, cr, pl, rig = stereo_truth()
     pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
     rng = np.random.default_rng(seed)
-    t = box_target()
+    t = cube_box_target()
     return (cl, cr, pl, rig), project_target(t, cl, pl, SIZE, noise, rng), project_target(t, cr, pr, SIZE, noise, rng)
 
 
@@ -72,7 +72,7 @@ def test_too_few_corners_for_the_unknowns():
 def test_monte_carlo_reported_std_matches_spread():
     """Over many noisy trials the reported 1-sigma must match the actual scatter of the estimates."""
     cam, _, pose, _ = stereo_truth()
-    t = box_target(inner_corners=(3, 4), square_mm=20.0)  # small problem: 36 corners, keeps the test fast
+    t = cube_box_target(inner_corners=(3, 4), square_mm=20.0)  # small problem: 36 corners, keeps the test fast
     exact = project_target(t, cam, pose, SIZE)
     lin = calibrate_dlt(exact.object_mm, exact.image_px)
     rng = np.random.default_rng(42)
@@ -100,7 +100,7 @@ def test_monte_carlo_stereo_baseline_std_matches_spread():
     """The reported σ of the left->right translation matches its spread over noisy trials."""
     cl, cr, pl, rig = stereo_truth()
     pr = RigidTransform.from_rt(rig.rotation @ pl.rotation, rig.rotation @ pl.tvec + rig.tvec)
-    t = box_target(inner_corners=(3, 4), square_mm=20.0)
+    t = cube_box_target(inner_corners=(3, 4), square_mm=20.0)
     el, er = project_target(t, cl, pl, SIZE), project_target(t, cr, pr, SIZE)
     rng = np.random.default_rng(7)
     opts = RefineOptions(distortion="k1", outlier_sigmas=50.0)

@@ -7,8 +7,8 @@ import numpy as np
 
 from edgecal.calibration.planar import calibrate_planar
 from edgecal.calibration.refine import RefineOptions
-from edgecal.calibration.simulate import look_at, project_target, stereo_truth
-from edgecal.calibration.types import CornerSet
+from edgecal.calibration.types import CornerSet, RigidTransform
+from edgecal.synth.corners import project_target, stereo_truth
 from edgecal.targets import planar_target
 
 SIZE = (640, 480)
@@ -24,7 +24,7 @@ def _views(rng: np.random.Generator, n: int = 8) -> tuple[object, list[CornerSet
         centre = np.array([100.0, 62.5, 0.0]) + rng.normal(0, 30, 3) * [1, 1, 0]
         tilt = np.radians(rng.uniform(-35, 35, 2))
         eye = centre + 480.0 * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])
-        cs = project_target(target, cam, look_at(eye, centre, up=np.array([0.0, -1.0, 0.0])), SIZE)
+        cs = project_target(target, cam, RigidTransform.looking_at(eye, centre, up=np.array([0.0, -1.0, 0.0])), SIZE)
         m = len(cs)
         s = np.where(np.arange(m) % 3 == 0, 0.4, 0.05)[:, None] * rng.uniform(0.6, 1.4, size=(m, 2))
         a = rng.uniform(0, np.pi, m)

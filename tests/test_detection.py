@@ -23,9 +23,10 @@ from edgecal.detection.probe import (
     probe_profiles,
 )
 from edgecal.errors import ConfigError, InputError
-from edgecal.evaluate import FoundGrid, corner_rms, ground_truth_from_mapping, score_image
+from edgecal.scoring import FoundGrid, corner_rms, score_image
 from edgecal.synth.photometric import CLEAN
 from edgecal.synth.scenes import multi_view, negative_view, planar_view
+from edgecal.synth.truth import ground_truth_from_mapping
 from edgecal.targets import Board, Target, planar_target
 
 

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from edgecal.camera import CameraModel
+from edgecal.geometry import look_at
 
 CAMERA_NAMES = ("left", "right")
 
@@ -28,6 +29,13 @@ class RigidTransform:
         """From a 3x3 rotation matrix and a translation."""
         return RigidTransform(cv2.Rodrigues(np.asarray(rotation, dtype=np.float64))[0].ravel(),
                               np.asarray(translation, dtype=np.float64).ravel().copy())
+
+    @staticmethod
+    def looking_at(eye_mm: np.ndarray, centre_mm: np.ndarray,
+                   up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "RigidTransform":
+        """T_cam_target of a camera at ``eye_mm`` looking at ``centre_mm`` with image-up along ``up``
+        (edgecal.geometry.look_at)."""
+        return RigidTransform.from_rt(*look_at(eye_mm, centre_mm, up))
 
     @property
     def rotation(self) -> np.ndarray:

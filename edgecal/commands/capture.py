@@ -36,7 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
 def _detect(image: Any, target: Any) -> tuple[list[dict], list[str]]:
     """The boards found in one frame (name, copy, corners found of the board's) and the detector's notes
     (e.g. a grid of another size than the target's)."""
-    from edgecal import detect_debug
+    from edgecal.detection.detector import detect_debug
     from edgecal.images import as_grey
     found = []
     debug = detect_debug(as_grey(image), target)

@@ -83,7 +83,7 @@ class Collector:
         self.previous: list[CornerSet] | None = None
 
     def _corners(self, images: list[np.ndarray]) -> list[CornerSet]:
-        from edgecal import detect
+        from edgecal.detection.detector import detect
         dets = [detect(img, self.target) for img in images]
         empty = corner_set(self.target, [], np.zeros((0, 2)))
         found: tuple[Assignment | None, ...]

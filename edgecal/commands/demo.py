@@ -1,8 +1,8 @@
 """``edgecal demo --out out/demo``: the whole pipeline on data edgecal renders itself.
 
 1. render the calibration box seen by the robot's stereo rig and detect its boards in both images;
-2. calibrate the rig from that one pair (``edgecal calibrate`` -> rig.yaml) and compare with the truth;
-3. render a short sequence of the robot moving in front of the same rig (``edgecal render robot``);
+2. calibrate the rig from that one pair (as ``edgecal calibrate`` does -> rig.yaml) and compare with the truth;
+3. render a short sequence of the robot moving in front of the same rig (as ``edgecal render robot`` does);
 4. run the live loop on its replay with a ZeroMQ subscriber attached, and compare every published
    pose with the ground truth.
 
@@ -13,8 +13,6 @@ Afterwards ``edgecal run --config configs/robot.yaml`` streams the same replay (
 from __future__ import annotations
 
 import argparse
-import contextlib
-import io
 import json
 import threading
 import time
@@ -72,34 +70,46 @@ def render_box_pair(seed: int, out: Path) -> dict:
 
 def detect_box(out: Path) -> list[str]:
     """Detect the box's boards in both images; one summary line per image."""
-    import edgecal
     from edgecal.config import packaged_config_path
+    from edgecal.detection.detector import detect
     from edgecal.images import load_grey
+    from edgecal.targets import load_target
 
-    target = edgecal.load_target(packaged_config_path("targets/box-100mm.yaml"))
+    target = load_target(packaged_config_path("targets/box-100mm.yaml"))
     lines = []
     for side in ("left", "right"):
-        dets = edgecal.detect(load_grey(out / "box" / f"{side}.png"), target)
+        dets = detect(load_grey(out / "box" / f"{side}.png"), target)
         boards = ", ".join(f"{d.board} {len(d.corners)}" for d in dets) or "none"
         lines.append(f"  {side}: {len(dets)} boards ({boards} corners)")
     return lines
 
 
 def calibrate(out: Path, truth: dict) -> list[str]:
-    """Calibrate from the box pair with `edgecal calibrate`; compare focal, baseline and rotation with the truth."""
-    from edgecal.calibration.io import load_rig
-    from edgecal.cli import main
+    """Calibrate from the box pair as ``edgecal calibrate --report`` does (rig.yaml, camera_info, corners, report;
+    its output in calibrate.txt); compare focal, baseline and rotation with the truth."""
+    from edgecal.calibration.from_images import calibrate_images, calibration_problems, provenance
+    from edgecal.calibration.io import load_rig, write_calibration
+    from edgecal.calibration.report import format_summary, write_report
+    from edgecal.calibration.settings import load_calibration_settings
+    from edgecal.calibration.views import corners_path, corners_text, name_views
     from edgecal.config import packaged_config_path
+    from edgecal.targets import load_target
 
-    log = io.StringIO()
-    with contextlib.redirect_stdout(log), contextlib.redirect_stderr(log):
-        code = main(["calibrate", "--target", str(packaged_config_path("targets/box-100mm.yaml")),
-                     "--left", str(out / "box" / "left.png"), "--right", str(out / "box" / "right.png"),
-                     "--out", str(out / "rig.yaml"), "--report", str(out / "calibration"), "--force"])
-    write_atomic(out / "calibrate.txt", log.getvalue().encode("utf-8"))
-    if code != 0:
-        last = log.getvalue().strip().splitlines()[-1:] or ["(no output)"]
-        raise EdgecalError(f"demo: calibration failed ({last[0]}); details in {out / 'calibrate.txt'}")
+    target = load_target(packaged_config_path("targets/box-100mm.yaml"))
+    settings = load_calibration_settings(None)
+    views = name_views([(out / "box" / "left.png", out / "box" / "right.png")])
+    cal, corners, size = calibrate_images(target, views, settings)
+    problems = calibration_problems(cal, target, views, settings)
+    corners_out = corners_path(out / "rig.yaml")
+    prov = provenance(target, views, cal, settings, None, corners_out)
+    write_report(cal, views, out / "calibration", True, problems=problems, bounds=settings.acceptance, provenance=prov)
+    log = [format_summary(cal)]
+    if not problems:
+        also = {corners_out: corners_text(views, corners, size, target).encode("utf-8")}
+        log += [f"wrote {p}" for p in write_calibration(cal, out / "rig.yaml", True, provenance=prov, also=also)]
+    write_atomic(out / "calibrate.txt", ("\n".join(log) + "\n").encode("utf-8"))
+    if problems:
+        raise EdgecalError(f"demo: calibration refused ({'; '.join(problems)}); details in {out / 'calibrate.txt'}")
     rig = load_rig(out / "rig.yaml")
     lines = []
     for i, side in enumerate(("left", "right")):
@@ -115,15 +125,13 @@ def calibrate(out: Path, truth: dict) -> list[str]:
 
 
 def render_robot(out: Path, seed: int, frames: int) -> None:
-    """`edgecal render robot`: the robot moving in front of the rig, with the true pose of every frame."""
-    from edgecal.cli import main
+    """The robot moving in front of the rig, with the true pose of every frame (as ``edgecal render robot``)."""
+    from edgecal.synth import scenes, writer
 
-    log = io.StringIO()
-    with contextlib.redirect_stderr(log):
-        code = main(["render", "robot", "--out", str(out / "robot"), "--count", str(frames), "--seed", str(seed),
-                     "--force"])
-    if code != 0:
-        raise EdgecalError(f"demo: rendering the robot sequence failed: {log.getvalue().strip()}")
+    size = (1280, 800)
+    rig = scenes.robot_rig(seed, size)
+    sequence = scenes.robot_sequence(seed, frames, size=size, photometric="clean")
+    writer.write_robot_sequence(out / "robot", sequence, rig, scenes.robot_target(), 30.0, True)
 
 
 def stream(out: Path) -> tuple[list[dict], float]:

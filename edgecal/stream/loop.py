@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 import cv2
 import numpy as np
 
-import edgecal
+from edgecal.detection.detector import detect
 from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
 from edgecal.drivers.base import Source, StereoFrame
@@ -211,7 +211,7 @@ class LiveLoop:
         t0 = time.monotonic()
         board = self.config.target.boards[0]
         image = warm_up_image((w or 640, h or 480), board.cols, board.rows)
-        for det in edgecal.detect(image, self.config.target, self.config.detector):
+        for det in detect(image, self.config.target, self.config.detector):
             moved = [CornerPrediction(self.config.target.board(det.board), det.ids, det.corners + 0.7)]
             track_boards(image, moved, self.config.detector)
         # Everything loaded so far (numba, scipy, OpenCV bindings: hundreds of thousands of objects) lives as
@@ -389,7 +389,7 @@ class LiveLoop:
         if problem is not None:
             return [], problem
         try:
-            return edgecal.detect(image, self.config.target, self.config.detector), None
+            return detect(image, self.config.target, self.config.detector), None
         except InputError as exc:            # e.g. an array the detector cannot read as an image
             return [], str(exc)
 

@@ -1,4 +1,4 @@
-"""Scoring functions of edgecal.evaluate on small hand-built truth and detection arrays."""
+"""Scoring functions of edgecal.scoring on small hand-built truth and detection arrays, and the truth reader."""
 
 from __future__ import annotations
 
@@ -8,20 +8,8 @@ import numpy as np
 import pytest
 
 from edgecal.errors import InputError
-from edgecal.evaluate import (
-    GT_FORMAT,
-    FoundGrid,
-    GroundTruth,
-    TruthBoard,
-    corner_rms,
-    grid_is_plausible,
-    grid_symmetries,
-    load_ground_truth,
-    load_ocamcalib_json,
-    load_opencv_corners_dat,
-    match_board,
-    score_image,
-)
+from edgecal.scoring import FoundGrid, corner_rms, grid_is_plausible, grid_symmetries, match_board, score_image
+from edgecal.synth.truth import GT_FORMAT, GroundTruth, TruthBoard, load_ground_truth
 
 
 def grid_ids(cols: int, rows: int) -> np.ndarray:
@@ -199,35 +187,3 @@ def test_load_ground_truth(tmp_path):
         load_ground_truth(p)
     with pytest.raises(InputError, match="not found"):
         load_ground_truth(tmp_path / "missing.json")
-
-
-def test_load_opencv_corners_dat(tmp_path):
-    ids = grid_ids(3, 2)
-    xy = board_xy(ids)
-    flat = ", ".join(f"{v:.6e}" for v in xy.ravel())
-    p = tmp_path / "c.dat"
-    p.write_text(f"isFound: 1\ncorners:\n   rows: 2\n   cols: 3\n   data: [ {flat} ]\n")
-    gt = load_opencv_corners_dat(p, "c.png", (320, 240), 3, 2)
-    assert not gt.exact
-    assert np.allclose(gt.boards[0].corners, xy, atol=1e-5)
-    assert (gt.boards[0].ids == ids).all()
-    with pytest.raises(InputError, match="expected 10"):
-        load_opencv_corners_dat(p, "c.png", (320, 240), 5, 1)
-
-
-def test_load_ocamcalib_json_puts_the_cols_axis_first(tmp_path):
-    # 3 x 2 inner corners, the board's Y axis carries the 3 columns (as in Fisheye190Pts.json)
-    pts, xyz = [], []
-    for x in range(2):
-        for y in range(3):
-            xyz.append([x * 30.0, y * 30.0, 0.0])
-            pts.append([10.0 + 20 * y, 5.0 + 20 * x])
-    data = {"inner_corners": [3, 2], "square_mm": 30,
-            "views": [{"image": "v1.jpg", "points_xy_zero_based": pts, "board_XYZ_mm": xyz}]}
-    p = tmp_path / "pts.json"
-    p.write_text(json.dumps(data))
-    refs = load_ocamcalib_json(p)
-    board = refs["v1.jpg"].boards[0]
-    assert (board.cols, board.rows) == (3, 2)
-    assert board.ids[:, 0].max() == 2 and board.ids[:, 1].max() == 1
-    assert np.allclose(board.corners[board.ids[:, 0] == 2][:, 0], 50.0)

@@ -1,8 +1,9 @@
 """Scoring chessboard detections against ground truth: pure functions, used by tests and bench/.
 
-Ground truth comes from the renderer's JSON ("edgecal-synth-gt/1", see edgecal/synth and
-shared/data/synthetic/README.md) or from reference corners shipped with real photographs (an OpenCV
-``.dat`` corner file, OCamCalib's points converted to JSON). Everything here is arrays in, numbers out.
+Ground truth is a :class:`~edgecal.synth.truth.GroundTruth`: read from the renderer's JSON
+("edgecal-synth-gt/1", edgecal.synth.truth; shared/data/synthetic/README.md) or from reference corners
+shipped with real photographs (bench/references.py). Everything here is arrays in, numbers out; nothing
+in the library itself imports this module.
 
 Vocabulary:
 
@@ -24,18 +25,13 @@ Vocabulary:
 
 from __future__ import annotations
 
-import json
 import math
-import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from edgecal.errors import InputError, quote
-
-GT_FORMAT = "edgecal-synth-gt/1"
+from edgecal.synth.truth import GroundTruth, TruthBoard
 
 #: Default distance (px) within which a detected corner counts as found.
 MAX_ERROR_PX = 3.0
@@ -43,37 +39,6 @@ MAX_ERROR_PX = 3.0
 
 # ----------------------------------------------------------------------------------------------------
 # Data
-
-
-@dataclass(frozen=True)
-class TruthBoard:
-    """One board's true (or reference) corners: ``ids`` (N, 2) int (col, row), ``corners`` (N, 2) px."""
-
-    name: str
-    cols: int
-    rows: int
-    ids: np.ndarray
-    corners: np.ndarray
-
-    @property
-    def complete(self) -> bool:
-        """True when all cols x rows corners are listed (visible)."""
-        return len(self.ids) == self.cols * self.rows
-
-
-@dataclass(frozen=True)
-class GroundTruth:
-    """Truth for one image: its boards (possibly none), and whether the corners are exact.
-
-    ``exact`` is False for reference corners taken from another tool (real photographs): they may hold
-    a few off-corner points, so a board counts as found when ``min_fraction`` of its corners agree.
-    """
-
-    image: str
-    size: tuple[int, int]
-    boards: tuple[TruthBoard, ...]
-    exact: bool = True
-    source: str = ""
 
 
 @dataclass(frozen=True)
@@ -332,139 +297,3 @@ def grid_is_plausible(found: FoundGrid, max_turn_deg: float = 40.0, max_step_rat
     cos = np.abs((d_col * d_row).sum(axis=2)) / (
         np.linalg.norm(d_col, axis=2) * np.linalg.norm(d_row, axis=2) + 1e-12)
     return bool((cos < math.cos(math.radians(20.0))).all())
-
-
-# ----------------------------------------------------------------------------------------------------
-# Loaders
-
-
-def _read_json(path: Path) -> object:
-    if not path.is_file():
-        raise InputError(f"{path}: ground-truth file not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"{path}: not readable JSON ({exc})") from None
-
-
-def _xy_array(value: object, where: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.size == 0:
-        return np.zeros((0, 2))
-    if arr.ndim != 2 or arr.shape[1] != 2:
-        raise InputError(f"{where}: expected a list of [a, b] pairs")
-    return arr
-
-
-def ground_truth_from_mapping(data: object, source: str) -> GroundTruth:
-    """Build a GroundTruth from a parsed "edgecal-synth-gt/1" mapping; ``source`` names it in messages."""
-    if not isinstance(data, dict):
-        raise InputError(f"{source}: the top level must be a JSON object")
-    fmt = data.get("format")
-    if fmt != GT_FORMAT:
-        raise InputError(f"{source}: field 'format' is {quote(fmt)}, expected {GT_FORMAT!r}")
-    try:
-        w, h = (int(v) for v in data["size"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError(f"{source}: field 'size' must be [width, height]") from None
-    raw_boards = data.get("boards")
-    if not isinstance(raw_boards, list):
-        raise InputError(f"{source}: field 'boards' must be a list")
-    boards = []
-    for i, b in enumerate(raw_boards):
-        where = f"{source}: field 'boards[{i}]"
-        if not isinstance(b, dict):
-            raise InputError(f"{where}' must be an object")
-        for key in ("cols", "rows", "ids", "corners"):
-            if key not in b:
-                raise InputError(f"{where}.{key}' is missing")
-        ids = _xy_array(b["ids"], f"{where}.ids'").astype(np.int64)
-        xy = _xy_array(b["corners"], f"{where}.corners'")
-        if len(ids) != len(xy):
-            raise InputError(f"{where}': {len(ids)} ids but {len(xy)} corners")
-        boards.append(TruthBoard(str(b.get("name", f"board{i}")), int(b["cols"]), int(b["rows"]), ids, xy))
-    image = str(data.get("image", ""))
-    return GroundTruth(image, (w, h), tuple(boards), True, source)
-
-
-def load_ground_truth(path: str | Path) -> GroundTruth:
-    """Load a renderer ground-truth JSON file ("edgecal-synth-gt/1"); InputError naming the file/field."""
-    p = Path(path)
-    return ground_truth_from_mapping(_read_json(p), str(p))
-
-
-def truth_targets(path: str | Path) -> list[dict]:
-    """The ``target.boards`` list of a ground-truth JSON (all boards in the scene, with 3-D placement)."""
-    p = Path(path)
-    data = _read_json(p)
-    boards = data.get("target", {}).get("boards", []) if isinstance(data, dict) else []
-    if not isinstance(boards, list):
-        raise InputError(f"{p}: field 'target.boards' must be a list")
-    return boards
-
-
-_DAT_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
-
-
-def load_opencv_corners_dat(path: str | Path, image: str, size: tuple[int, int],
-                            cols: int, rows: int) -> GroundTruth:
-    """Reference corners from an OpenCV test ``.dat`` (``corners: data: [x0, y0, x1, y1, ...]``).
-
-    OpenCV lists them row-major for patternSize (cols, rows): point i is (col i % cols, row i // cols).
-    These are OpenCV's own output, not independent truth: the GroundTruth is marked not exact.
-    """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: reference corner file not found")
-    text = p.read_text(encoding="utf-8", errors="replace")
-    start = text.find("data:")
-    if start < 0:
-        raise InputError(f"{p}: no 'data:' list of corner coordinates")
-    body = text[start + 5:]
-    end = body.find("]")
-    numbers = [float(t) for t in _DAT_NUMBER.findall(body[:end] if end >= 0 else body)]
-    n = cols * rows
-    if len(numbers) != 2 * n:
-        raise InputError(f"{p}: {len(numbers)} numbers in 'data', expected {2 * n} for {cols}x{rows} corners")
-    xy = np.asarray(numbers).reshape(n, 2)
-    k = np.arange(n)
-    ids = np.stack([k % cols, k // cols], axis=1).astype(np.int64)
-    board = TruthBoard(f"reference_{cols}x{rows}", cols, rows, ids, xy)
-    return GroundTruth(image, size, (board,), exact=False, source=str(p))
-
-
-def load_ocamcalib_json(path: str | Path) -> dict[str, GroundTruth]:
-    """Reference corners per image from the OCamCalib points converted to JSON (Fisheye190Pts.json).
-
-    Ids come from each point's board coordinates: with ``inner_corners`` [cols, rows], the board axis
-    that has ``cols`` distinct values is the column axis. Images are not read (size left (0, 0)).
-    """
-    p = Path(path)
-    data = _read_json(p)
-    if not isinstance(data, dict) or not isinstance(data.get("views"), list):
-        raise InputError(f"{p}: field 'views' must be a list")
-    try:
-        cols, rows = (int(v) for v in data["inner_corners"])
-        square = float(data["square_mm"])
-    except (KeyError, TypeError, ValueError):
-        raise InputError(f"{p}: fields 'inner_corners' [cols, rows] and 'square_mm' are required") from None
-    out: dict[str, GroundTruth] = {}
-    for i, view in enumerate(data["views"]):
-        where = f"{p}: field 'views[{i}]"
-        try:
-            name = str(view["image"])
-            xy = _xy_array(view["points_xy_zero_based"], f"{where}.points_xy_zero_based'")
-            board_xy = np.asarray(view["board_XYZ_mm"], dtype=np.float64)[:, :2]
-        except (KeyError, TypeError, ValueError, IndexError):
-            raise InputError(f"{where}' needs 'image', 'points_xy_zero_based' and 'board_XYZ_mm'") from None
-        grid = np.rint(board_xy / square).astype(np.int64)
-        # which board axis counts the columns: the one with `cols` distinct values
-        if len(np.unique(grid[:, 0])) == cols and len(np.unique(grid[:, 1])) == rows and cols != rows:
-            ids = grid
-        else:
-            ids = grid[:, ::-1].copy()
-        if len(xy) != len(ids):
-            raise InputError(f"{where}': {len(xy)} points but {len(ids)} board coordinates")
-        board = TruthBoard(f"reference_{cols}x{rows}", cols, rows, ids, xy)
-        out[name] = GroundTruth(name, (0, 0), (board,), exact=False, source=str(p))
-    return out
