@@ -27,8 +27,9 @@ from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.synth import scenes  # noqa: E402
 from edgecal.synth.camera import _RAY_CACHE, corner_ray_grid  # noqa: E402
 from edgecal.synth.clutter import clutter_background  # noqa: E402
+from edgecal.synth.panels import panels_from_target  # noqa: E402
 from edgecal.synth.photometric import apply_photometric, random_photometric  # noqa: E402
-from edgecal.synth.render import panels_from_target, render_radiance  # noqa: E402
+from edgecal.synth.render import render_radiance  # noqa: E402
 from edgecal.synth.truth import board_truth  # noqa: E402
 from edgecal.synth.view import render_view  # noqa: E402
 from edgecal.targets import planar_target  # noqa: E402

@@ -24,14 +24,9 @@ from edgecal.synth.camera import (
     project_world,
     undistort_normalized,
 )
+from edgecal.synth.panels import Panel, board_panel_extent, panels_from_target
 from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
-from edgecal.synth.render import (
-    Panel,
-    board_panel_extent,
-    panels_from_target,
-    render_radiance,
-    render_radiance_reference,
-)
+from edgecal.synth.render import render_radiance, render_radiance_reference
 from edgecal.synth.scenes import (
     box_stereo,
     hard_view,

@@ -49,7 +49,7 @@ def render_box_pair(seed: int, out: Path) -> dict:
     from edgecal.geometry import look_at
     from edgecal.synth import scenes
     from edgecal.synth.camera import stereo_right_pose
-    from edgecal.synth.render import panels_from_target
+    from edgecal.synth.panels import panels_from_target
     from edgecal.synth.view import render_view
 
     rig = scenes.robot_rig(seed, (1280, 800))

@@ -31,9 +31,11 @@ def cube_box_target(size_mm: float = 100.0, inner_corners: tuple[int, int] = (4,
         # top: x along +x, y along -y -> normal -z (into the box)
         Board("top", cols, rows, square_mm, np.array([m_w, s - m_h, s]), np.array([1.0, 0, 0]), np.array([0, -1.0, 0])),
         # front (y = 0): x along +x, y along -z -> normal +y
-        Board("front", cols, rows, square_mm, np.array([m_w, 0, s - m_h]), np.array([1.0, 0, 0]), np.array([0, 0, -1.0])),
+        Board("front", cols, rows, square_mm, np.array([m_w, 0, s - m_h]), np.array([1.0, 0, 0]),
+              np.array([0, 0, -1.0])),
         # right (x = size): x along +y, y along -z -> normal -x
-        Board("right", cols, rows, square_mm, np.array([s, m_w, s - m_h]), np.array([0, 1.0, 0]), np.array([0, 0, -1.0])),
+        Board("right", cols, rows, square_mm, np.array([s, m_w, s - m_h]), np.array([0, 1.0, 0]),
+              np.array([0, 0, -1.0])),
     )
     return Target(name, boards, source="simulated")
 
@@ -82,7 +84,8 @@ def stereo_truth(distance_mm: float = 300.0, baseline_mm: float = 60.0, size_mm:
     r = right_pose.rotation @ left_pose.rotation.T
     rig = RigidTransform.from_rt(r, np.ravel(right_pose.tvec) - r @ np.ravel(left_pose.tvec))
     k_l = np.array([[focal_px, 0, image_size[0] / 2 + 4.0], [0, focal_px * 1.002, image_size[1] / 2 - 3.0], [0, 0, 1]])
-    k_r = np.array([[focal_px * 1.01, 0, image_size[0] / 2 - 5.0], [0, focal_px * 1.011, image_size[1] / 2 + 2.0], [0, 0, 1]])
+    k_r = np.array([[focal_px * 1.01, 0, image_size[0] / 2 - 5.0], [0, focal_px * 1.011, image_size[1] / 2 + 2.0],
+                    [0, 0, 1]])
     d = np.array(dist, dtype=float)
     return (CameraModel.from_opencv(k_l, d, image_size),
             CameraModel.from_opencv(k_r, d * np.array([1.05, 0.9, 1, 1, 1]), image_size), left_pose, rig)

@@ -18,9 +18,9 @@ import numpy as np
 from edgecal.camera import CameraModel
 from edgecal.geometry import rotation_about
 from edgecal.synth.camera import camera_from_fov, pixel_rays, stereo_right_pose
+from edgecal.synth.panels import Panel, board_panel_extent
 from edgecal.synth.photometric import Photometric
-from edgecal.synth.render import Panel, board_panel_extent
-from edgecal.synth.scenes import SeedLike, _fits, _photometric, _rng, _squares_outline
+from edgecal.synth.scenes.common import SeedLike, board_fits, scene_photometric, scene_rng, squares_outline
 from edgecal.synth.view import RenderedView, render_view
 from edgecal.targets import Board, planar_target
 
@@ -53,7 +53,7 @@ class HandheldFrame:
 def handheld_rig(seed: SeedLike, size: tuple[int, int] = (640, 480), stereo: bool = True,
                  baseline_mm: float = 80.0, cols: int = 9, rows: int = 6, square_mm: float = 30.0) -> HandheldRig:
     """Two (or one) cameras with mild distortion, the right one ``baseline_mm`` to the right, toed in slightly."""
-    rng = _rng(seed, "handheld-rig")
+    rng = scene_rng(seed, "handheld-rig")
     def camera(name: str) -> CameraModel:
         dist = (rng.uniform(-0.15, -0.05), rng.uniform(0.0, 0.05), rng.normal(0, 3e-4), rng.normal(0, 3e-4), 0.0)
         off = (float(rng.normal(0, 0.01 * size[0])), float(rng.normal(0, 0.01 * size[1])))
@@ -79,7 +79,7 @@ def _key_poses(rng: np.random.Generator, rig: HandheldRig, n: int) -> list[tuple
     Pose k goes to PLACES[k % 9] (jittered), alternately far and near, with a tilt from TILTS_DEG about a
     random axis; where it does not fit it is pulled toward the middle and shrunk until it does.
     """
-    outline = _squares_outline(rig.board)
+    outline = squares_outline(rig.board)
     b = rig.board
     w, h = rig.left.image_size
     f = float(np.sqrt(rig.left.fx * rig.left.fy))
@@ -100,10 +100,10 @@ def _key_poses(rng: np.random.Generator, rig: HandheldRig, n: int) -> list[tuple
             shift = 0.0 if rig.right is None else 0.5 * f * float(np.linalg.norm(rig.T_right_left_mm)) / z
             ray = pixel_rays(rig.left, np.array([[place[0] * (w - 1) + shift, place[1] * (h - 1)]]))[0]
             t = ray * z - R @ centre
-            ok = np.all(np.isfinite(t)) and _fits(rig.left, outline @ R.T + t, 6.0)[0]
+            ok = np.all(np.isfinite(t)) and board_fits(rig.left, outline @ R.T + t, 6.0)[0]
             if ok and rig.right is not None:
                 Rr, tr = stereo_right_pose(R, t, rig.R_right_left, rig.T_right_left_mm)
-                ok = _fits(rig.right, outline @ Rr.T + tr, 6.0)[0]
+                ok = board_fits(rig.right, outline @ Rr.T + tr, 6.0)[0]
             if ok:
                 poses.append((R, t))
                 break
@@ -126,9 +126,9 @@ def handheld_sequence(seed: SeedLike, rig: HandheldRig, n_poses: int = 12, hold_
                       supersampling: int = 4) -> Iterator[HandheldFrame]:
     """Render the session frame by frame: at each of ``n_poses`` poses the board is held for
     ``hold_frames`` frames, then carried to the next over ``move_frames`` frames (smoothstep)."""
-    rng = _rng(seed, "handheld")
+    rng = scene_rng(seed, "handheld")
     poses = _key_poses(rng, rig, n_poses)
-    phot = _photometric(rng, photometric)
+    phot = scene_photometric(rng, photometric)
     b = rig.board
     panel = Panel(b.name, np.zeros(3), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]),
                   board_panel_extent(b, 1.0 * b.square_mm), b, 0.08, 0.85)

@@ -1,7 +1,7 @@
 """Ray-casting planar panels (chessboards and plain plates) through a camera of any lens model.
 
-The scene is a list of :class:`Panel` in the world frame. Rays are cast through every pixel *corner*
-(the lens model's exact inverse, edgecal.camera.unproject; fisheye rays may point behind the camera
+The scene is a list of :class:`~edgecal.synth.panels.Panel` in the world frame. Rays are cast through every
+pixel *corner* (the lens model's exact inverse, edgecal.camera.unproject; fisheye rays may point behind the camera
 plane, so a 190 degree lens renders too; see camera.py) and each corner gets a label: which panel is in front and
 which cell of its pattern it falls in (a square, or a margin strip). A pixel whose four corners share
 one label lies entirely inside one convex cell, so it is uniform and costs nothing more. Every other
@@ -10,116 +10,31 @@ stratified, jittered rays, so the pixel value is its true area average (box filt
 jitter is a fixed hash of the pixel, so renders are deterministic and the estimate unbiased.
 
 The output of this module is linear radiance (albedo x 1); photometric.py turns it into an 8-bit image.
-Printed side: a board's pattern faces the side opposite its normal x_axis × y_axis (the board's z axis
-points away from a camera that sees the pattern, as in OpenCV); from behind, a panel shows ``back_albedo``.
+The panels and their packed array are panels.py's.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from edgecal.camera import CameraModel
 from edgecal.synth.camera import corner_ray_grid
-from edgecal.targets import Board, Target
-
-# Columns of the packed per-panel array handed to the kernels (camera frame, mm).
-_O, _EX, _EY, _N = 0, 3, 6, 9
-_UMIN, _VMIN, _UMAX, _VMAX = 12, 13, 14, 15
-_SQUARE, _COLS, _ROWS = 16, 17, 18
-_BLACK, _WHITE, _BACK, _FRONT = 19, 20, 21, 22
-_BBOX = 23  # 23..26: bounding box of the panel's image in undistorted normalised coordinates
-_NCOL = 27
-
-
-@dataclass(frozen=True)
-class Panel:
-    """A flat rectangle in the world frame, optionally printed with a chessboard.
-
-    ``origin_mm`` is the board's inner corner (0, 0) (or any reference point of a plain panel);
-    ``extent_mm`` = (umin, vmin, umax, vmax) is the rectangle along ``x_axis``/``y_axis`` relative to it.
-    ``board`` is None for a plain panel (uniform ``white_albedo`` on its front).
-    """
-
-    name: str
-    origin_mm: np.ndarray
-    x_axis: np.ndarray
-    y_axis: np.ndarray
-    extent_mm: tuple[float, float, float, float]
-    board: Board | None = None
-    black_albedo: float = 0.06
-    white_albedo: float = 0.85
-    back_albedo: float = 0.55
-
-    @property
-    def normal(self) -> np.ndarray:
-        """Unit normal x_axis × y_axis; the printed side faces -normal."""
-        return np.cross(self.x_axis, self.y_axis)
-
-
-def board_panel_extent(board: Board, margin_mm: float | None = None) -> tuple[float, float, float, float]:
-    """Extent of a board's panel: the squares plus a white margin (default: one square, at least 6 mm)."""
-    s = board.square_mm
-    m = max(s, 6.0) if margin_mm is None else float(margin_mm)
-    return (-s - m, -s - m, board.cols * s + m, board.rows * s + m)
-
-
-def panels_from_target(target: Target, R_world_target: np.ndarray = np.eye(3),
-                       t_world_target_mm: np.ndarray = np.zeros(3), *,
-                       extents: dict[str, tuple[float, float, float, float]] | None = None,
-                       margin_mm: float | None = None, black_albedo: float = 0.06,
-                       white_albedo: float = 0.85) -> list[Panel]:
-    """One printed Panel per board of ``target``, placed in the world by the pose T_world_target.
-
-    ``extents`` overrides the panel rectangle of named boards (e.g. a whole face of the calibration box).
-    """
-    R = np.asarray(R_world_target, dtype=np.float64)
-    t = np.asarray(t_world_target_mm, dtype=np.float64).ravel()
-    out = []
-    for b in target.boards:
-        ext = (extents or {}).get(b.name) or board_panel_extent(b, margin_mm)
-        out.append(Panel(b.name, R @ b.origin_mm + t, R @ b.x_axis, R @ b.y_axis, tuple(float(v) for v in ext),
-                         b, black_albedo, white_albedo))
-    return out
-
-
-def pack_panels(panels: list[Panel], R_cam_world: np.ndarray, t_cam_world_mm: np.ndarray) -> np.ndarray:
-    """The (P, 27) float64 array of panels in the camera frame that the kernels read."""
-    R = np.asarray(R_cam_world, dtype=np.float64)
-    t = np.asarray(t_cam_world_mm, dtype=np.float64).ravel()
-    arr = np.zeros((len(panels), _NCOL))
-    for i, p in enumerate(panels):
-        o = R @ np.asarray(p.origin_mm, dtype=np.float64) + t
-        ex = R @ np.asarray(p.x_axis, dtype=np.float64)
-        ey = R @ np.asarray(p.y_axis, dtype=np.float64)
-        n = np.cross(ex, ey)
-        arr[i, _O:_O + 3] = o
-        arr[i, _EX:_EX + 3] = ex
-        arr[i, _EY:_EY + 3] = ey
-        arr[i, _N:_N + 3] = n
-        arr[i, _UMIN:_VMAX + 1] = p.extent_mm
-        if p.board is not None:
-            arr[i, _SQUARE] = p.board.square_mm
-            arr[i, _COLS] = p.board.cols
-            arr[i, _ROWS] = p.board.rows
-        arr[i, _BLACK] = p.black_albedo
-        arr[i, _WHITE] = p.white_albedo
-        arr[i, _BACK] = p.back_albedo
-        # The camera (origin) sees the printed side when it lies on the -normal side of the plane.
-        arr[i, _FRONT] = 1.0 if float(n @ o) > 0.0 else 0.0
-        # A panel in front of the camera projects to a convex quadrilateral: its bounding box rejects most
-        # rays with four comparisons. A panel reaching behind the camera gets no box.
-        u0, v0, u1, v1 = p.extent_mm
-        corners = np.array([o + a * ex + b * ey for a, b in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))])
-        if np.all(corners[:, 2] > 1e-6):
-            xy = corners[:, :2] / corners[:, 2:3]
-            arr[i, _BBOX:_BBOX + 4] = (xy[:, 0].min() - 1e-9, xy[:, 1].min() - 1e-9,
-                                       xy[:, 0].max() + 1e-9, xy[:, 1].max() + 1e-9)
-        else:
-            arr[i, _BBOX:_BBOX + 4] = (-np.inf, -np.inf, np.inf, np.inf)
-    return arr
+from edgecal.synth.panels import (
+    BACK,
+    BBOX,
+    BLACK,
+    COLS,
+    FRONT,
+    ROWS,
+    SQUARE,
+    WHITE,
+    Panel,
+    outside_panel,
+    pack_panels,
+    panel_uv,
+    ray_plane,
+)
 
 
 @njit(cache=True, nogil=True)
@@ -137,25 +52,16 @@ def _hit(x: float, y: float, z: float, panels: np.ndarray) -> tuple[int, int, in
         if z > 0.0:
             xz = x / z
             yz = y / z
-            if xz < panels[p, 23] or xz > panels[p, 25] or yz < panels[p, 24] or yz > panels[p, 26]:
+            if (xz < panels[p, BBOX] or xz > panels[p, BBOX + 2] or yz < panels[p, BBOX + 1]
+                    or yz > panels[p, BBOX + 3]):
                 continue
-        elif panels[p, 23] > -np.inf:
+        elif panels[p, BBOX] > -np.inf:
             continue  # the panel lies entirely in front of the camera plane; this ray does not
-        nx = panels[p, 9]
-        ny = panels[p, 10]
-        nz = panels[p, 11]
-        den = nx * x + ny * y + nz * z
-        if abs(den) < 1e-15:
-            continue
-        t = (nx * panels[p, 0] + ny * panels[p, 1] + nz * panels[p, 2]) / den
+        t = ray_plane(x, y, z, panels, p)
         if t <= 0.0 or t >= best_t:
             continue
-        dx = t * x - panels[p, 0]
-        dy = t * y - panels[p, 1]
-        dz = t * z - panels[p, 2]
-        u = dx * panels[p, 3] + dy * panels[p, 4] + dz * panels[p, 5]
-        v = dx * panels[p, 6] + dy * panels[p, 7] + dz * panels[p, 8]
-        if u < panels[p, 12] or u > panels[p, 14] or v < panels[p, 13] or v > panels[p, 15]:
+        u, v = panel_uv(t, x, y, z, panels, p)
+        if outside_panel(u, v, panels, p):
             continue
         best_t = t
         best = p
@@ -163,23 +69,23 @@ def _hit(x: float, y: float, z: float, panels: np.ndarray) -> tuple[int, int, in
         bv = v
     if best < 0:
         return -1, 0, 0, 0.0, 0.0, 0.0
-    if panels[best, 22] == 0.0:
-        return best, -99, -99, panels[best, 21], bu, bv
-    s = panels[best, 16]
+    if panels[best, FRONT] == 0.0:
+        return best, -99, -99, panels[best, BACK], bu, bv
+    s = panels[best, SQUARE]
     if s <= 0.0:
-        return best, 0, 0, panels[best, 20], bu, bv
-    cols = int(panels[best, 17])
-    rows = int(panels[best, 18])
+        return best, 0, 0, panels[best, WHITE], bu, bv
+    cols = int(panels[best, COLS])
+    rows = int(panels[best, ROWS])
     # Cells: squares -1..cols-1 / -1..rows-1, margins clamped to -2 and cols / rows (all cells convex).
     i = int(np.floor(bu / s))
     j = int(np.floor(bv / s))
     i = min(max(i, -2), cols)
     j = min(max(j, -2), rows)
     if i < -1 or i > cols - 1 or j < -1 or j > rows - 1:
-        return best, i, j, panels[best, 20], bu, bv
+        return best, i, j, panels[best, WHITE], bu, bv
     if (i + j) % 2 == 0:
-        return best, i, j, panels[best, 19], bu, bv
-    return best, i, j, panels[best, 20], bu, bv
+        return best, i, j, panels[best, BLACK], bu, bv
+    return best, i, j, panels[best, WHITE], bu, bv
 
 
 @njit(cache=True, nogil=True)
@@ -313,10 +219,10 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, panels: np.ndarray,
             la = l00
             lb = l00
             n_lab = 1
-            for l in (l10, l01, l11):
-                if l != la and (n_lab == 1 or l != lb):
+            for lab in (l10, l01, l11):
+                if lab != la and (n_lab == 1 or lab != lb):
                     if n_lab == 1:
-                        lb = l
+                        lb = lab
                     n_lab += 1
             if n_lab == 2 and la >= 0 and lb >= 0 and la // 1000000 == lb // 1000000:
                 p = la // 1000000
@@ -324,7 +230,7 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, panels: np.ndarray,
                 ja = la % 1000 - 100
                 ib = (lb // 1000) % 1000 - 100
                 jb = lb % 1000 - 100
-                s = panels[p, 16]
+                s = panels[p, SQUARE]
                 if s > 0.0 and ia != -99 and ((abs(ia - ib) == 1 and ja == jb) or (abs(ja - jb) == 1 and ia == ib)):
                     # One straight grid line u = k s (or v = k s) crosses the pixel.
                     g = gu if ia != ib else gv
@@ -352,12 +258,12 @@ def _raycast(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, panels: np.ndarray,
             one_panel = (l00 >= 0 and l10 // 1000000 == p00 and l01 // 1000000 == p00
                          and l11 // 1000000 == p00 and l10 >= 0 and l01 >= 0 and l11 >= 0)
             n_square_cells = 0
-            if one_panel and panels[p00, 16] > 0.0:
-                cols = int(panels[p00, 17])
-                rows = int(panels[p00, 18])
-                for l in (l00, l10, l01, l11):
-                    ci = (l // 1000) % 1000 - 100
-                    cj = l % 1000 - 100
+            if one_panel and panels[p00, SQUARE] > 0.0:
+                cols = int(panels[p00, COLS])
+                rows = int(panels[p00, ROWS])
+                for lab in (l00, l10, l01, l11):
+                    ci = (lab // 1000) % 1000 - 100
+                    cj = lab % 1000 - 100
                     if -1 <= ci <= cols - 1 and -1 <= cj <= rows - 1:
                         n_square_cells += 1
             n_sampled += 1
@@ -437,19 +343,12 @@ def _unoccluded(x: float, y: float, z: float, panels: np.ndarray, own: int) -> b
     for p in range(panels.shape[0]):
         if p == own:
             continue
-        den = panels[p, 9] * x + panels[p, 10] * y + panels[p, 11] * z
-        if abs(den) < 1e-15:
-            continue
-        t = (panels[p, 9] * panels[p, 0] + panels[p, 10] * panels[p, 1] + panels[p, 11] * panels[p, 2]) / den
+        t = ray_plane(x, y, z, panels, p)
         # as for points in front: a panel flush with this one (within 1e-3 mm) does not occlude it
         if t <= 0.0 or t >= 1.0 - 1e-6 - 1e-3 / dist:
             continue
-        dx = t * x - panels[p, 0]
-        dy = t * y - panels[p, 1]
-        dz = t * z - panels[p, 2]
-        u = dx * panels[p, 3] + dy * panels[p, 4] + dz * panels[p, 5]
-        v = dx * panels[p, 6] + dy * panels[p, 7] + dz * panels[p, 8]
-        if panels[p, 12] <= u <= panels[p, 14] and panels[p, 13] <= v <= panels[p, 15]:
+        u, v = panel_uv(t, x, y, z, panels, p)
+        if not outside_panel(u, v, panels, p):
             return False
     return True
 
@@ -457,7 +356,7 @@ def _unoccluded(x: float, y: float, z: float, panels: np.ndarray, own: int) -> b
 @njit(cache=True, nogil=True)
 def _visible_kernel(pts: np.ndarray, panels: np.ndarray, own: int) -> np.ndarray:
     out = np.zeros(pts.shape[0], dtype=np.bool_)
-    if panels[own, 22] == 0.0:
+    if panels[own, FRONT] == 0.0:
         return out
     for k in range(pts.shape[0]):
         z = pts[k, 2]
@@ -471,22 +370,12 @@ def _visible_kernel(pts: np.ndarray, panels: np.ndarray, own: int) -> np.ndarray
         for p in range(panels.shape[0]):
             if p == own:
                 continue
-            nx = panels[p, 9]
-            ny = panels[p, 10]
-            nz = panels[p, 11]
-            den = nx * x + ny * y + nz
-            if abs(den) < 1e-15:
-                continue
-            t = (nx * panels[p, 0] + ny * panels[p, 1] + nz * panels[p, 2]) / den
+            t = ray_plane(x, y, 1.0, panels, p)  # the ray (x, y, 1): t is a depth
             # A panel flush with this one (a robot face under a board) does not occlude it.
             if t <= 0.0 or t >= z - 1e-6 * z - 1e-3:
                 continue
-            dx = t * x - panels[p, 0]
-            dy = t * y - panels[p, 1]
-            dz = t - panels[p, 2]
-            u = dx * panels[p, 3] + dy * panels[p, 4] + dz * panels[p, 5]
-            v = dx * panels[p, 6] + dy * panels[p, 7] + dz * panels[p, 8]
-            if panels[p, 12] <= u <= panels[p, 14] and panels[p, 13] <= v <= panels[p, 15]:
+            u, v = panel_uv(t, x, y, 1.0, panels, p)
+            if not outside_panel(u, v, panels, p):
                 ok = False
                 break
         out[k] = ok

@@ -2,9 +2,9 @@
 
 The format is the one of ../shared/data/synthetic/README.md, so one scoring code reads the shared sets
 and edgecal's own renders. Corner pixels come from edgecal.camera.project (equal to cv2.projectPoints and
-cv2.fisheye.projectPoints, the reference definitions, to 1e-6 px; tests/test_camera.py); a corner is listed only when its printed side faces the camera, no other panel is in
-front of it (nor of the board within 0.3 squares around it) and it lies at least ``border_px`` inside
-the image.
+cv2.fisheye.projectPoints, the reference definitions, to 1e-6 px; tests/test_camera.py); a corner is listed
+only when its printed side faces the camera, no other panel is in front of it (nor of the board within 0.3
+squares around it) and it lies at least ``border_px`` inside the image.
 
 Reading: :func:`load_ground_truth` (a file) and :func:`ground_truth_from_mapping` (a parsed document)
 give a :class:`GroundTruth` of :class:`TruthBoard` arrays, which edgecal.scoring compares detections
@@ -22,7 +22,8 @@ import numpy as np
 from edgecal.camera import CameraModel, unproject
 from edgecal.errors import InputError, quote
 from edgecal.synth.camera import pixel_rays, project_world
-from edgecal.synth.render import Panel, visible_mask
+from edgecal.synth.panels import Panel
+from edgecal.synth.render import visible_mask
 
 GT_FORMAT = "edgecal-synth-gt/1"
 PAIR_FORMAT = "edgecal-synth-gt/1+stereo"
@@ -126,8 +127,9 @@ def panels_from_json(target: dict) -> list[Panel]:
     out = []
     for b in target.get("boards", []):
         board = Board(str(b["name"]), int(b["cols"]), int(b["rows"]), float(b["square_mm"]))
-        out.append(Panel(board.name, np.array(b["origin_mm"], dtype=np.float64), np.array(b["x_axis"], dtype=np.float64),
-                         np.array(b["y_axis"], dtype=np.float64), tuple(float(v) for v in b["panel_extent_mm"]), board,
+        out.append(Panel(board.name, np.array(b["origin_mm"], dtype=np.float64),
+                         np.array(b["x_axis"], dtype=np.float64), np.array(b["y_axis"], dtype=np.float64),
+                         tuple(float(v) for v in b["panel_extent_mm"]), board,
                          float(b.get("black_albedo", 0.06)), float(b.get("white_albedo", 0.85))))
     return out
 

@@ -8,8 +8,9 @@ import numpy as np
 
 from edgecal.camera import CameraModel
 from edgecal.synth.camera import camera_json
+from edgecal.synth.panels import Panel
 from edgecal.synth.photometric import CLEAN, Photometric, apply_photometric
-from edgecal.synth.render import Panel, render_radiance
+from edgecal.synth.render import render_radiance
 from edgecal.synth.truth import GT_FORMAT, UNITS, board_truth, target_json
 
 

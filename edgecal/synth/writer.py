@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from edgecal.fileio import png_bytes, refuse_existing, sync_paths, write_atomic
-from edgecal.synth.scenes import RobotFrame, RobotRig, StereoView
+from edgecal.synth.scenes.box import StereoView
+from edgecal.synth.scenes.robot import RobotFrame, RobotRig
 from edgecal.synth.view import RenderedView
 from edgecal.targets import Target
 
