@@ -39,7 +39,6 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from edgecal.drivers import open_source  # noqa: E402
-
 from edgecal.runtime import tune_allocator  # noqa: E402
 
 LOCK = Path("/tmp/edgecal-arv-fake-gv.lock")   # shared with the tests: one fake camera at a time

@@ -1,17 +1,31 @@
-"""Shared by the live-loop tests: a rendered robot sequence, its rig.yaml and a config to run it."""
+"""Shared by the live-loop and daemon tests: a rendered robot sequence, its rig.yaml and a config to run it, a
+subscriber, the notify socket, the daemon process, and inputs a reload must survive."""
 
 from __future__ import annotations
 
+import copy
 import json
+import os
 import socket
+import subprocess
+import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 import yaml
+import zmq
+from scipy.spatial.transform import Rotation
 
+from edgecal.stream import LiveLoop, load_live_config
 from edgecal.synth import scenes, writer
+
+# A YAML "billion laughs" of 378 bytes: nine levels of nine aliases in one value, whose repr is 3 GB.
+ALIAS_BOMB = "[&a [lol, lol, lol, lol, lol, lol, lol, lol, lol], " + ", ".join(
+    f"&{c} [{', '.join(['*' + p] * 9)}]" for p, c in zip("abcdefgh", "bcdefghi")) + "]"
 
 
 def wait_until(condition, timeout_s: float) -> bool:
@@ -71,3 +85,129 @@ def write_config(path: Path, sequence: Path, endpoint: str, *, source_extra: dic
         doc["pose"] = pose
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
+
+
+class Subscriber:
+    """A SUB socket collecting every message in a background thread."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.ctx = zmq.Context()
+        self.sock = self.ctx.socket(zmq.SUB)
+        self.sock.setsockopt(zmq.LINGER, 0)
+        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
+        self.sock.connect(endpoint)
+        self.messages: list[dict] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if self.sock.poll(50):
+                _topic, body = self.sock.recv_multipart()
+                self.messages.append(json.loads(body))
+
+    def of(self, kind: str) -> list[dict]:
+        return [m for m in list(self.messages) if m["type"] == kind]
+
+    def wait_for(self, condition, timeout_s: float = 20.0) -> bool:
+        return wait_until(condition, timeout_s)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+        self.ctx.term()
+
+
+def run_in_thread(loop: LiveLoop) -> tuple[threading.Thread, list]:
+    """Run ``loop`` in a thread; the list receives its exit code."""
+    result: list = []
+    th = threading.Thread(target=lambda: result.append(loop.run()))
+    th.start()
+    return th, result
+
+
+def run_loop_until(config: Path, endpoint: str, done: Callable[[Subscriber], bool]) -> Subscriber:
+    """Run the LiveLoop of ``config`` in a thread, a subscriber on ``endpoint``, until ``done(subscriber)``
+    (AssertionError after 20 s), then stop it: it must end with 0. The closed subscriber holds the messages."""
+    sub = Subscriber(endpoint)
+    loop = LiveLoop(load_live_config(config))
+    th, result = run_in_thread(loop)
+    try:
+        assert sub.wait_for(lambda: done(sub)), f"got {len(sub.of('pose'))} poses, {len(sub.of('status'))} status"
+    finally:
+        loop.request_stop()
+        th.join(10)
+        sub.close()
+    assert not th.is_alive() and result == [0]
+    return sub
+
+
+def pose_errors(msg: dict, truth: dict) -> tuple[float, float]:
+    """A pose message's position error (mm) and rotation error (deg) against the rendered truth of its frame."""
+    frame = truth["frames"][msg["seq"] % len(truth["frames"])]
+    err_mm = 1000 * np.linalg.norm(np.array(msg["pose"]["position_m"]) - frame["t_rig_robot_m"])
+    q_err = Rotation.from_quat(msg["pose"]["orientation_xyzw"]) * Rotation.from_matrix(frame["R_rig_robot"]).inv()
+    return float(err_mm), float(np.degrees(q_err.magnitude()))
+
+
+class NotifySocket:
+    """The receiving end of $NOTIFY_SOCKET, read continuously as systemd does."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = str(path)
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(self.path)
+        self.sock.settimeout(0.05)
+        self.received: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.received.append(self.sock.recv(4096).decode())
+            except TimeoutError:
+                pass
+
+    def wait_for(self, line: str, timeout_s: float) -> bool:
+        return wait_until(lambda: any(line in m.splitlines() for m in list(self.received)), timeout_s)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+
+
+def start_daemon(config: Path, notify: NotifySocket, log: Path) -> subprocess.Popen:
+    """`edgecal run --config CONFIG` in a subprocess notifying ``notify``, its output in ``log``."""
+    env = {**os.environ, "NOTIFY_SOCKET": notify.path, "NUMBA_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(config)], env=env,
+                            stdout=log.open("wb"), stderr=subprocess.STDOUT)
+
+
+def end_daemon(proc: subprocess.Popen, *listeners: Subscriber | NotifySocket) -> None:
+    """A test's teardown: kill the daemon if the test left it running, then close its listeners."""
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    for listener in listeners:
+        listener.close()
+
+
+def bad_rigs(truth_rig: dict, good_rig: Path, folder: Path) -> dict[str, Path]:
+    """Files that are not a usable rig, by what is wrong with them."""
+    rigs = {"text file": folder / "notes.txt", "no nodes": folder / "empty-rig.yaml",
+            "bad node": folder / "bad-node-rig.yaml"}
+    rigs["text file"].write_text("this is not a calibration\n")
+    rigs["no nodes"].write_text("%YAML:1.0\n---\nfoo: 1\n")
+    good = good_rig.read_text()
+    rigs["bad node"].write_text(good.replace("camera_matrix_left: !!opencv-matrix",
+                                             "camera_matrix_left: abc\nx: !!opencv-matrix"))
+    for name, fx in (("nan focal", float("nan")), ("zero focal", 0.0)):
+        rig = copy.deepcopy(truth_rig)
+        rig["left"]["K"][0][0] = fx
+        rigs[name] = write_rig_yaml(rig, folder / f"{name.replace(' ', '-')}-rig.yaml")
+    return rigs

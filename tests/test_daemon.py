@@ -2,20 +2,27 @@
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
 import yaml
-from live_fixtures import free_endpoint, render_robot, wait_until, write_config
-from test_stream import Subscriber
+
+from .live_fixtures import (
+    NotifySocket,
+    Subscriber,
+    end_daemon,
+    free_endpoint,
+    render_robot,
+    start_daemon,
+    wait_until,
+    write_config,
+)
 
 N_FRAMES = 3
 
@@ -25,41 +32,6 @@ def sequence(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("robot")
     render_robot(folder, N_FRAMES, seed=5)
     return folder
-
-
-class NotifySocket:
-    """The receiving end of $NOTIFY_SOCKET, read continuously as systemd does."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = str(path)
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-        self.sock.bind(self.path)
-        self.sock.settimeout(0.05)
-        self.received: list[str] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.received.append(self.sock.recv(4096).decode())
-            except TimeoutError:
-                pass
-
-    def wait_for(self, line: str, timeout_s: float) -> bool:
-        return wait_until(lambda: any(line in m.splitlines() for m in list(self.received)), timeout_s)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.sock.close()
-
-
-def start(config: Path, notify: NotifySocket, log: Path) -> subprocess.Popen:
-    env = {**os.environ, "NOTIFY_SOCKET": notify.path, "NUMBA_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(config)], env=env,
-                            stdout=log.open("wb"), stderr=subprocess.STDOUT)
 
 
 def test_notify_reload_and_sigterm(sequence: Path, tmp_path: Path) -> None:
@@ -76,7 +48,7 @@ def test_notify_reload_and_sigterm(sequence: Path, tmp_path: Path) -> None:
 def _run_daemon(cfg: Path, good: dict, notify: NotifySocket, endpoint: str, tmp_path: Path) -> None:
     sub = Subscriber(endpoint)
     log = tmp_path / "run.log"
-    proc = start(cfg, notify, log)
+    proc = start_daemon(cfg, notify, log)
     try:
         assert notify.wait_for("READY=1", 90), log.read_text()
         assert notify.wait_for("WATCHDOG=1", 5)
@@ -105,10 +77,7 @@ def _run_daemon(cfg: Path, good: dict, notify: NotifySocket, endpoint: str, tmp_
         code = proc.wait(10)
         elapsed = time.monotonic() - t0
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        sub.close()
+        end_daemon(proc, sub)
     text = log.read_text()
     assert code == 0, text
     assert elapsed < 1.0, f"SIGTERM took {elapsed:.2f} s"
@@ -169,7 +138,7 @@ def test_ready_while_the_camera_is_absent_at_boot(sequence: Path, tmp_path: Path
     notify = NotifySocket(tmp_path / "notify.sock")
     sub = Subscriber(endpoint)
     log = tmp_path / "run.log"
-    proc = start(cfg, notify, log)
+    proc = start_daemon(cfg, notify, log)
     try:
         assert notify.wait_for("READY=1", 90), log.read_text()
         ready = next(m for m in notify.received if "READY=1" in m.splitlines())
@@ -182,9 +151,5 @@ def test_ready_while_the_camera_is_absent_at_boot(sequence: Path, tmp_path: Path
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(10) == 0
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        sub.close()
-        notify.close()
+        end_daemon(proc, sub, notify)
     assert "Traceback" not in log.read_text()

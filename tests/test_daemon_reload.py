@@ -12,38 +12,17 @@ from pathlib import Path
 
 import pytest
 import yaml
-from live_fixtures import free_endpoint, render_robot, write_rig_yaml
-from test_daemon import NotifySocket, start
-from test_stream import Subscriber
 
 from edgecal.config import packaged_config_path
 from edgecal.errors import MESSAGE_MAX_CHARS
 
-# A YAML "billion laughs" of 378 bytes: nine levels of nine aliases in one value, whose repr is 3 GB.
-ALIAS_BOMB = "[&a [lol, lol, lol, lol, lol, lol, lol, lol, lol], " + ", ".join(
-    f"&{c} [{', '.join(['*' + p] * 9)}]" for p, c in zip("abcdefgh", "bcdefghi")) + "]"
+from .live_fixtures import ALIAS_BOMB, NotifySocket, Subscriber, bad_rigs, free_endpoint, render_robot, start_daemon
 
 
 @pytest.fixture(scope="module")
 def robot(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     folder = tmp_path_factory.mktemp("robot")
     return folder, render_robot(folder, 3, seed=5)
-
-
-def bad_rigs(truth_rig: dict, good_rig: Path, folder: Path) -> dict[str, Path]:
-    """Files that are not a usable rig, by what is wrong with them."""
-    rigs = {"text file": folder / "notes.txt", "no nodes": folder / "empty-rig.yaml",
-            "bad node": folder / "bad-node-rig.yaml"}
-    rigs["text file"].write_text("this is not a calibration\n")
-    rigs["no nodes"].write_text("%YAML:1.0\n---\nfoo: 1\n")
-    good = good_rig.read_text()
-    rigs["bad node"].write_text(good.replace("camera_matrix_left: !!opencv-matrix",
-                                             "camera_matrix_left: abc\nx: !!opencv-matrix"))
-    for name, fx in (("nan focal", float("nan")), ("zero focal", 0.0)):
-        rig = copy.deepcopy(truth_rig)
-        rig["left"]["K"][0][0] = fx
-        rigs[name] = write_rig_yaml(rig, folder / f"{name.replace(' ', '-')}-rig.yaml")
-    return rigs
 
 
 def live_doc(folder: Path, endpoint: str) -> dict:
@@ -65,7 +44,7 @@ class Daemon:
         self.sub = Subscriber(self.endpoint)
         self.notify = NotifySocket(tmp_path / "notify.sock")
         self.log = tmp_path / "run.log"
-        self.proc = start(cfg, self.notify, self.log)
+        self.proc = start_daemon(cfg, self.notify, self.log)
         assert self.notify.wait_for("READY=1", 90), self.log.read_text()
         assert self.sub.wait_for(lambda: len(self.sub.of("pose")) >= 2, 30), self.log.read_text()
 

@@ -7,14 +7,8 @@ CI (``make test`` installs the Debian packages and PyGObject); they skip only ou
 
 from __future__ import annotations
 
-import fcntl
 import json
-import os
-import shutil
-import subprocess
 import time
-from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,74 +16,7 @@ import pytest
 from edgecal.drivers import open_source
 from edgecal.errors import DeviceError
 
-FAKE = "arv-fake-gv-camera-0.8"
-LOCK = Path("/tmp/edgecal-arv-fake-gv.lock")
-
-
-def _require_aravis() -> None:
-    problem = None
-    if shutil.which(FAKE) is None:
-        problem = f"{FAKE} is not installed (Debian package aravis-tools)"
-    else:
-        try:
-            from edgecal.drivers.aravis import load_aravis
-            load_aravis()
-        except DeviceError as exc:
-            problem = str(exc)
-    if problem:
-        if os.environ.get("CI"):
-            pytest.fail(f"Aravis tests must run in CI: {problem}")
-        pytest.skip(problem)
-
-
-def _die_with_parent() -> None:
-    """In the child: receive SIGKILL when the test process dies (no orphaned camera holding the port)."""
-    import ctypes
-    import signal
-    ctypes.CDLL(None).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
-
-
-class FakeCamera:
-    """A running arv-fake-gv-camera-0.8 process on 127.0.0.1."""
-
-    def __init__(self) -> None:
-        self.proc = subprocess.Popen([FAKE, "-i", "127.0.0.1", "-s", "EDGECAL"], stdout=subprocess.DEVNULL,
-                                     stderr=subprocess.PIPE, preexec_fn=_die_with_parent)
-        from edgecal.drivers.aravis import load_aravis
-        Aravis = load_aravis()
-        deadline = time.monotonic() + 5.0
-        while True:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"{FAKE} exited: {self.proc.stderr.read().decode(errors='replace')}")
-            try:
-                Aravis.Camera.new("127.0.0.1")  # the GVCP port answers: the camera is up
-                return
-            except Exception:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.05)
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(5)
-
-
-@pytest.fixture
-def gv_lock() -> Iterator[None]:
-    _require_aravis()
-    with open(LOCK, "w") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        yield
-
-
-@pytest.fixture
-def fake_camera(gv_lock: None) -> Iterator[FakeCamera]:
-    cam = FakeCamera()
-    try:
-        yield cam
-    finally:
-        cam.kill()
+from .aravis_fake import FakeCamera, require_aravis
 
 
 def test_stream_from_the_fake_gige_camera(fake_camera: FakeCamera) -> None:
@@ -160,14 +87,14 @@ def test_absent_camera_is_a_clear_error(gv_lock: None) -> None:
 
 
 def test_builtin_fake_interface() -> None:
-    _require_aravis()
+    require_aravis()
     with open_source("aravis:fake?fps=30&width=64&height=48") as src:
         f = src.read()
     assert f.image.shape == (48, 64)
 
 
 def test_capture_command_on_the_builtin_fake(capsys: pytest.CaptureFixture) -> None:
-    _require_aravis()
+    require_aravis()
     from edgecal.cli import main
     assert main(["capture", "aravis:fake?fps=50&width=64&height=48", "--frames", "4", "--json"]) == 0
     rows = [json.loads(line) for line in capsys.readouterr().out.splitlines()]

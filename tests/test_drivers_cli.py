@@ -8,10 +8,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from driver_frames import render_frame
 
 from edgecal.cli import main
 from edgecal.drivers import open_source
+
+from .driver_frames import render_frame
 
 
 def _board_image(shift: int) -> np.ndarray:

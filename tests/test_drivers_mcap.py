@@ -9,10 +9,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from ros_logs import LogImage, gradient, write_mcap, write_rosbag
 
 from edgecal.drivers import StereoSource, open_source
 from edgecal.errors import ConfigError, InputError
+
+from .ros_logs import LogImage, gradient, write_mcap, write_rosbag
 
 T0 = 1_700_000_000_123_456_789
 
@@ -261,11 +262,12 @@ def _camera_frames(n: int, shape: tuple, dtype: type = np.uint8) -> list:
 
 @pytest.mark.parametrize("shape, dtype", [((24, 32), np.uint8), ((24, 32, 3), np.uint8), ((20, 16), np.uint16)])
 def test_record_to_mcap_round_trip(tmp_path: Path, shape: tuple, dtype: type) -> None:
-    from driver_frames import ListSource
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
     from edgecal.drivers import record
+
+    from .driver_frames import ListSource
     frames = _camera_frames(5, shape, dtype)
     out = tmp_path / "rec.mcap"
     with ListSource(frames) as src:

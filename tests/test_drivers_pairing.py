@@ -6,11 +6,12 @@ import time
 
 import numpy as np
 import pytest
-from driver_frames import ListSource, frames_at
 
 from edgecal.drivers import LatestFrameSource, PairedStereoSource, TimestampPairer, open_source
 from edgecal.drivers.base import Source
 from edgecal.errors import DeviceError
+
+from .driver_frames import ListSource, frames_at
 
 MS = 1_000_000
 
@@ -76,7 +77,8 @@ def test_paired_stereo_gives_up_with_a_clear_error_when_clocks_never_match() -> 
 
 def test_stereo_uri_pairs_two_replays(tmp_path) -> None:
     import cv2
-    from driver_frames import render_frame
+
+    from .driver_frames import render_frame
     for side in ("l", "r"):
         (tmp_path / side).mkdir()
         for i in range(4):
@@ -139,7 +141,8 @@ def test_latest_frame_reports_a_stalled_camera_after_the_timeout() -> None:
 
 def test_latest_only_setting_wraps_the_source(tmp_path) -> None:
     import cv2
-    from driver_frames import render_frame
+
+    from .driver_frames import render_frame
     for i in range(3):
         cv2.imwrite(str(tmp_path / f"{i}.png"), render_frame(i))
     # Paced (a camera at 100 fps): frames come faster than they are read, and only the newest is kept.
@@ -153,9 +156,10 @@ def test_latest_only_setting_wraps_the_source(tmp_path) -> None:
 
 def test_latest_frame_reader_survives_one_unreadable_frame(tmp_path) -> None:
     import cv2
-    from driver_frames import render_frame
 
     from edgecal.errors import InputError
+
+    from .driver_frames import render_frame
     for i in range(4):
         cv2.imwrite(str(tmp_path / f"{i}.png"), render_frame(i))
     (tmp_path / "1.png").write_bytes(b"truncated")

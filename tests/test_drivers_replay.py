@@ -9,10 +9,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from driver_frames import ListSource, render_frame
 
 from edgecal.drivers import Frame, StereoFrame, StereoSource, open_source, record
 from edgecal.errors import DeviceError, InputError
+
+from .driver_frames import ListSource, render_frame
 
 
 def _camera_frames(n: int, shape: tuple[int, ...], dtype: type, start_ns: int = 123_456_789_012) -> list[Frame]:

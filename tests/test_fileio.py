@@ -14,7 +14,6 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from unprivileged import run_cli, shared_folder
 
 from edgecal.config import packaged_config_path
 from edgecal.errors import InputError
@@ -24,6 +23,8 @@ from edgecal.fileio import (
     supports_unnamed_temporaries,
     write_atomic_set,
 )
+
+from .unprivileged import run_cli, shared_folder
 
 BOX = str(packaged_config_path("targets/box-100mm.yaml"))
 

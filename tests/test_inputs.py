@@ -16,11 +16,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from unprivileged import run_cli, shared_folder
 
 from edgecal.cli import main
 from edgecal.config import packaged_config_path
 from edgecal.imageheader import image_size
+
+from .unprivileged import run_cli, shared_folder
 
 BOX = str(packaged_config_path("targets/box-100mm.yaml"))
 

@@ -5,13 +5,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-from live_fixtures import free_endpoint, render_robot, write_config
-from scipy.spatial.transform import Rotation
-from test_stream import Subscriber, run_in_thread
-
 from edgecal.calibration.io import load_rig
-from edgecal.stream import LiveLoop, load_live_config
+
+from .live_fixtures import free_endpoint, pose_errors, render_robot, run_loop_until, write_config
 
 N_FRAMES = 4
 
@@ -24,20 +20,9 @@ def test_live_loop_on_a_fisheye_rig_meets_the_pinhole_targets(tmp_path: Path) ->
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, endpoint,
                        source_extra={"pace": "fast", "loop": True, "latest_only": False})
-    sub = Subscriber(endpoint)
-    loop = LiveLoop(load_live_config(cfg))
-    th, result = run_in_thread(loop)
-    try:
-        # two passes: every frame searched once and tracked once
-        assert sub.wait_for(lambda: len(sub.of("pose")) >= 2 * N_FRAMES), f"got {len(sub.of('pose'))} poses"
-    finally:
-        loop.request_stop()
-        th.join(10)
-        sub.close()
-    assert not th.is_alive() and result == [0]
+    # two passes: every frame searched once and tracked once
+    sub = run_loop_until(cfg, endpoint, lambda s: len(s.of("pose")) >= 2 * N_FRAMES)
     for msg in sub.of("pose"):
-        frame = truth["frames"][msg["seq"] % N_FRAMES]
         assert msg["valid"], msg["reason"]
-        err_mm = 1000 * np.linalg.norm(np.array(msg["pose"]["position_m"]) - frame["t_rig_robot_m"])
-        q_err = Rotation.from_quat(msg["pose"]["orientation_xyzw"]) * Rotation.from_matrix(frame["R_rig_robot"]).inv()
-        assert err_mm < 1.0 and np.degrees(q_err.magnitude()) < 0.1, (err_mm, np.degrees(q_err.magnitude()))
+        err_mm, err_deg = pose_errors(msg, truth)
+        assert err_mm < 1.0 and err_deg < 0.1, (err_mm, err_deg)

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_pose import render_detections, robot_target, rotation_error_rad, stereo_cams, true_pose
 
 from edgecal.detection.types import Detection
 from edgecal.pose import PoseSettings, estimate_pose
 from edgecal.pose.estimate import board_shared_error
+
+from .pose_fixtures import render_detections, robot_target, rotation_error_rad, stereo_cams, true_pose
 
 
 def _random_covariances(rng: np.random.Generator, n: int, sigma_px: float) -> np.ndarray:

@@ -13,10 +13,11 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 from websockets.sync.client import connect
 
 from edgecal.stream import LiveLoop, load_live_config
+
+from .live_fixtures import free_endpoint, render_robot, wait_until, write_config
 
 N_FRAMES = 3
 

@@ -16,12 +16,12 @@ from pathlib import Path
 
 import pytest
 import yaml
-from live_fixtures import free_endpoint, render_robot, wait_until, write_config
-from test_stream import Subscriber
 
 from edgecal.cli import main
 from edgecal.errors import ConfigError
 from edgecal.stream import LiveLoop, load_live_config
+
+from .live_fixtures import Subscriber, free_endpoint, render_robot, wait_until, write_config
 
 
 @pytest.fixture(scope="module")

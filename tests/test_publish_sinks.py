@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from live_fixtures import free_endpoint, render_robot, wait_until, write_config
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Schema
@@ -26,6 +25,8 @@ from edgecal.errors import ConfigError, InputError
 from edgecal.mcap_writer import McapLogWriter, numbered
 from edgecal.publish.sinks import FrameOutput, Sink, fan_out
 from edgecal.stream import LiveLoop, load_live_config
+
+from .live_fixtures import free_endpoint, render_robot, wait_until, write_config
 
 N_FRAMES = 4
 

@@ -11,11 +11,11 @@ from pathlib import Path
 import cv2
 import pytest
 import yaml
-from live_fixtures import free_endpoint, render_robot, write_config, write_rig_yaml
-from test_daemon_reload import ALIAS_BOMB, bad_rigs
 
 from edgecal.cli import main
 from edgecal.errors import QUOTE_MAX_CHARS, quote
+
+from .live_fixtures import ALIAS_BOMB, bad_rigs, free_endpoint, render_robot, write_config, write_rig_yaml
 
 
 @pytest.fixture(scope="module")

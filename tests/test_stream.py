@@ -2,20 +2,26 @@
 
 from __future__ import annotations
 
-import json
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zmq
-from live_fixtures import free_endpoint, render_robot, wait_until, write_config
-from scipy.spatial.transform import Rotation
 
 from edgecal.errors import ConfigError
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.loop import check_image, default_source_factory
+
+from .live_fixtures import (
+    Subscriber,
+    free_endpoint,
+    pose_errors,
+    render_robot,
+    run_in_thread,
+    run_loop_until,
+    wait_until,
+    write_config,
+)
 
 N_FRAMES = 4
 
@@ -26,74 +32,20 @@ def sequence(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     return folder, render_robot(folder, N_FRAMES)
 
 
-class Subscriber:
-    """A SUB socket collecting every message in a background thread."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.ctx = zmq.Context()
-        self.sock = self.ctx.socket(zmq.SUB)
-        self.sock.setsockopt(zmq.LINGER, 0)
-        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
-        self.sock.connect(endpoint)
-        self.messages: list[dict] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self.sock.poll(50):
-                _topic, body = self.sock.recv_multipart()
-                self.messages.append(json.loads(body))
-
-    def of(self, kind: str) -> list[dict]:
-        return [m for m in list(self.messages) if m["type"] == kind]
-
-    def wait_for(self, condition, timeout_s: float = 20.0) -> bool:
-        return wait_until(condition, timeout_s)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.sock.close()
-        self.ctx.term()
-
-
-def run_in_thread(loop: LiveLoop) -> tuple[threading.Thread, list]:
-    result: list = []
-    th = threading.Thread(target=lambda: result.append(loop.run()))
-    th.start()
-    return th, result
-
-
 def test_loop_publishes_poses_matching_truth(sequence: tuple[Path, dict], tmp_path: Path) -> None:
     folder, truth = sequence
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, endpoint,
                        source_extra={"pace": "fast", "loop": True, "latest_only": False})
-    sub = Subscriber(endpoint)
-    loop = LiveLoop(load_live_config(cfg))
-    th, result = run_in_thread(loop)
-    try:
-        def seen() -> bool:
-            return {m["seq"] % N_FRAMES for m in sub.of("pose")} == set(range(N_FRAMES))
-
-        assert sub.wait_for(seen), f"got {len(sub.of('pose'))} poses"
-        assert sub.wait_for(lambda: len(sub.of("status")) >= 1)
-    finally:
-        loop.request_stop()
-        th.join(10)
-        sub.close()
-    assert not th.is_alive() and result == [0]
+    # every frame's pose seen, and a status message
+    sub = run_loop_until(cfg, endpoint, lambda s: {m["seq"] % N_FRAMES for m in s.of("pose")} == set(range(N_FRAMES))
+                         and len(s.of("status")) >= 1)
     for msg in sub.of("pose"):
-        frame = truth["frames"][msg["seq"] % N_FRAMES]
         assert msg["version"] == 1 and msg["valid"], msg["reason"]
         assert msg["quality"]["mode"] == "stereo"
         assert msg["latency_ns"] > 0 and msg["latency_from"] == "receive"
-        err_mm = 1000 * np.linalg.norm(np.array(msg["pose"]["position_m"]) - frame["t_rig_robot_m"])
-        q_err = Rotation.from_quat(msg["pose"]["orientation_xyzw"]) * Rotation.from_matrix(frame["R_rig_robot"]).inv()
-        assert err_mm < 1.0                     # the targets on clean renders: 1 mm, 0.1 deg
-        assert np.degrees(q_err.magnitude()) < 0.1
+        err_mm, err_deg = pose_errors(msg, truth)
+        assert err_mm < 1.0 and err_deg < 0.1    # the targets on clean renders: 1 mm, 0.1 deg
         cov = np.array(msg["covariance"]).reshape(6, 6)
         assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
     status = sub.of("status")[-1]

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from live_fixtures import free_endpoint, write_rig_yaml
-from test_drivers_aravis import FakeCamera, gv_lock  # noqa: F401  (gv_lock is a fixture)
-from test_stream import Subscriber
 
 from edgecal.stream import LiveLoop, load_live_config
+
+from .aravis_fake import FakeCamera
+from .live_fixtures import Subscriber, free_endpoint, write_rig_yaml
 
 
 def small_rig(path: Path) -> Path:
@@ -23,7 +23,7 @@ def small_rig(path: Path) -> Path:
                            "T_right_left_mm": [-75.0, 0, 0]}, path)
 
 
-def test_camera_unplug_and_return(gv_lock: None, tmp_path: Path) -> None:  # noqa: F811
+def test_camera_unplug_and_return(gv_lock: None, tmp_path: Path) -> None:
     endpoint = free_endpoint()
     cam = {"width": 320, "height": 240, "fps": 30, "timeout_s": 0.5}
     cfg = tmp_path / "live.yaml"

@@ -108,9 +108,7 @@ def test_daemon_runs_under_the_system_call_allow_list(tmp_path: Path) -> None:
     seccomp = pytest.importorskip("pyseccomp")
     import signal
 
-    from live_fixtures import free_endpoint, render_robot, write_config
-    from test_daemon import NotifySocket
-    from test_stream import Subscriber
+    from .live_fixtures import NotifySocket, Subscriber, end_daemon, free_endpoint, render_robot, write_config
 
     allowed = system_service_syscalls()
     assert "mprotect" in allowed and "ioctl" in allowed and len(allowed) > 300
@@ -148,10 +146,6 @@ def test_daemon_runs_under_the_system_call_allow_list(tmp_path: Path) -> None:
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0, log.read_text()[-3000:]
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        sub.close()
-        notify.close()
+        end_daemon(proc, sub, notify)
     text = log.read_text()
     assert "Traceback" not in text and "Operation not permitted" not in text, text[-3000:]

@@ -10,7 +10,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from live_fixtures import free_endpoint, render_robot, write_config
 from scipy.spatial.transform import Rotation
 
 from edgecal.detection.tracking import MAX_MOTION_RESIDUAL_PX, track_boards
@@ -26,6 +25,8 @@ from edgecal.pose.predict import (
 )
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.tracker import BoardTracker, TrackingSettings, confirmed_fraction
+
+from .live_fixtures import free_endpoint, render_robot, write_config
 
 N_FRAMES = 3
 

@@ -31,11 +31,10 @@ class RigidTransform:
                               np.asarray(translation, dtype=np.float64).ravel().copy())
 
     @staticmethod
-    def looking_at(eye_mm: np.ndarray, centre_mm: np.ndarray,
-                   up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> "RigidTransform":
-        """T_cam_target of a camera at ``eye_mm`` looking at ``centre_mm`` with image-up along ``up``
-        (edgecal.geometry.look_at)."""
-        return RigidTransform.from_rt(*look_at(eye_mm, centre_mm, up))
+    def looking_at(eye_mm: np.ndarray, centre_mm: np.ndarray, up: np.ndarray | None = None) -> RigidTransform:
+        """T_cam_target of a camera at ``eye_mm`` looking at ``centre_mm`` with image-up along ``up`` (default +z;
+        edgecal.geometry.look_at)."""
+        return RigidTransform.from_rt(*(look_at(eye_mm, centre_mm) if up is None else look_at(eye_mm, centre_mm, up)))
 
     @property
     def rotation(self) -> np.ndarray:

@@ -26,6 +26,13 @@ BBOX = 23  # 23..26: bounding box (x0, y0, x1, y1) of the panel's image in undis
 N_COLUMNS = 27
 
 
+# shared default arguments of panels_from_target: read-only so no caller can change them
+_IDENTITY = np.eye(3)
+_IDENTITY.flags.writeable = False
+_NO_SHIFT = np.zeros(3)
+_NO_SHIFT.flags.writeable = False
+
+
 @dataclass(frozen=True)
 class Panel:
     """A flat rectangle in the world frame, optionally printed with a chessboard.
@@ -58,8 +65,8 @@ def board_panel_extent(board: Board, margin_mm: float | None = None) -> tuple[fl
     return (-s - m, -s - m, board.cols * s + m, board.rows * s + m)
 
 
-def panels_from_target(target: Target, R_world_target: np.ndarray = np.eye(3),
-                       t_world_target_mm: np.ndarray = np.zeros(3), *,
+def panels_from_target(target: Target, R_world_target: np.ndarray = _IDENTITY,
+                       t_world_target_mm: np.ndarray = _NO_SHIFT, *,
                        extents: dict[str, tuple[float, float, float, float]] | None = None,
                        margin_mm: float | None = None, black_albedo: float = 0.06,
                        white_albedo: float = 0.85) -> list[Panel]:
