@@ -117,6 +117,7 @@ def calibrate(out: Path, truth: dict) -> list[str]:
         f_true = truth[side]["K"][0][0]
         lines.append(f"  {side} focal {f_est:.1f} px (true {f_true:.1f}, error {100 * (f_est / f_true - 1):+.2f} %)")
     T_true = np.array(truth["T_right_left_mm"])
+    assert rig.stereo is not None  # the demo calibrates a stereo pair
     T_est = rig.stereo.t_right_left_m * 1000
     dR = Rotation.from_matrix(rig.stereo.R_right_left @ np.array(truth["R_right_left"]).T).magnitude()
     lines.append(f"  baseline {np.linalg.norm(T_est):.2f} mm (true {np.linalg.norm(T_true):.2f}), T error "

@@ -79,7 +79,8 @@ def panels_from_target(target: Target, R_world_target: np.ndarray = _IDENTITY,
     out = []
     for b in target.boards:
         ext = (extents or {}).get(b.name) or board_panel_extent(b, margin_mm)
-        out.append(Panel(b.name, R @ b.origin_mm + t, R @ b.x_axis, R @ b.y_axis, tuple(float(v) for v in ext),
+        umin, vmin, umax, vmax = (float(v) for v in ext)
+        out.append(Panel(b.name, R @ b.origin_mm + t, R @ b.x_axis, R @ b.y_axis, (umin, vmin, umax, vmax),
                          b, black_albedo, white_albedo))
     return out
 

@@ -310,7 +310,8 @@ def render_radiance(camera: CameraModel, panels: list[Panel], R_cam_world: np.nd
     """
     w, h = camera.image_size
     if np.isscalar(background):
-        bg = np.full((h, w), float(background), dtype=np.float32)
+        # np.isscalar does not narrow the type for mypy
+        bg = np.full((h, w), float(background), dtype=np.float32)  # type: ignore[arg-type]
     else:
         bg = np.ascontiguousarray(background, dtype=np.float32)
         if bg.shape != (h, w):

@@ -127,9 +127,10 @@ def panels_from_json(target: dict) -> list[Panel]:
     out = []
     for b in target.get("boards", []):
         board = Board(str(b["name"]), int(b["cols"]), int(b["rows"]), float(b["square_mm"]))
+        umin, vmin, umax, vmax = (float(v) for v in b["panel_extent_mm"])
         out.append(Panel(board.name, np.array(b["origin_mm"], dtype=np.float64),
                          np.array(b["x_axis"], dtype=np.float64), np.array(b["y_axis"], dtype=np.float64),
-                         tuple(float(v) for v in b["panel_extent_mm"]), board,
+                         (umin, vmin, umax, vmax), board,
                          float(b.get("black_albedo", 0.06)), float(b.get("white_albedo", 0.85))))
     return out
 
