@@ -102,6 +102,11 @@ def _noisy(cs: CornerSet, sigma: float, rng: np.random.Generator) -> CornerSet:
     return CornerSet(cs.object_mm, cs.image_px + rng.normal(0.0, sigma, cs.image_px.shape), cs.keys, cov)
 
 
+def _plain(cs: CornerSet) -> CornerSet:
+    """``cs`` without its covariances: the solve weighs every corner alike."""
+    return CornerSet(cs.object_mm, cs.image_px, cs.keys)
+
+
 def _angle_deg(r: np.ndarray) -> float:
     """Rotation angle of ``r`` (made orthonormal first: published matrices are rounded), accurate near 0."""
     u, _, vt = np.linalg.svd(r)
@@ -215,11 +220,15 @@ def synthetic(args: argparse.Namespace) -> dict:
                 for _ in range(args.draws if sigma > 0 or source == "exact" else 1):
                     left, right = _noisy(base[0], sigma, rng), _noisy(base[1], sigma, rng)
                     key = f"{source} +{sigma:g}px"
-                    bucket = results["sets"].setdefault(key, {"edgecal": [], "opencv": []})
-                    try:
-                        bucket["edgecal"].append(run_edgecal(left, right, size, truth, options))
-                    except edgecal.errors.EdgecalError as exc:
-                        print(f"seed {seed} {key}: edgecal failed: {exc}", file=sys.stderr)
+                    bucket = results["sets"].setdefault(key, {"edgecal": [], "unweighted": [], "opencv": []})
+                    runs = [("edgecal", left, right)]
+                    if left.image_cov_px2 is not None:   # the same corners, every one weighing alike
+                        runs.append(("unweighted", _plain(left), _plain(right)))
+                    for method, a, b in runs:
+                        try:
+                            bucket[method].append(run_edgecal(a, b, size, truth, options))
+                        except edgecal.errors.EdgecalError as exc:
+                            print(f"seed {seed} {key}: {method} failed: {exc}", file=sys.stderr)
                     try:
                         bucket["opencv"].append(run_opencv(left, right, size, truth, args.distortion))
                     except cv2.error as exc:
@@ -235,19 +244,26 @@ def planar_synthetic(n_sets: int, n_poses: int = 12, photometric: str = "normal"
     """Mono planar calibration from rendered hand-held sessions (edgecal.synth.handheld, 640x480, 9x6
     board, one held frame per pose) through the rig's radtan lens (model k1k2p1p2) and through a fisheye
     (Kannala-Brandt, 150-200 deg): errors of fx, fy, cx, cy and the first two lens parameters against the
-    truth and |error| / sigma, with the detector's corner covariances as weights and without."""
+    truth and |error| / sigma, with the detector's corner covariances as weights and without.
+
+    Seeds are tried in turn until ``n_sets`` sessions of each lens calibrate (at most 4 n_sets seeds: in
+    a wide fisheye the held board often leaves the image, and a session needs 6 views)."""
     from dataclasses import replace as dc_replace
 
     from edgecal.calibration.assign import assign
+    from edgecal.calibration.planar import coverage
     from edgecal.calibration.views import corner_set
     from edgecal.synth.handheld import handheld_rig, handheld_sequence
     from edgecal.synth.scenes import random_camera
 
     out: dict = {}
     for lens, distortion in (("radtan", "k1k2p1p2"), ("fisheye", "fisheye")):
-        res: dict = {"sets": 0, "weighted": [], "unweighted": []}
+        res: dict = {"sets": 0, "seeds_tried": 0, "weighted": [], "unweighted": []}
         out[lens] = res
-        for seed in range(n_sets):
+        for seed in range(4 * n_sets):
+            if res["sets"] >= n_sets:
+                break
+            res["seeds_tried"] += 1
             rig = handheld_rig([seed, 31], (640, 480), stereo=False)
             if lens == "fisheye":
                 rig = dc_replace(rig, left=random_camera(np.random.default_rng([seed, 32]), (640, 480),
@@ -266,30 +282,35 @@ def planar_synthetic(n_sets: int, n_poses: int = 12, photometric: str = "normal"
                 continue
             if len(views) < 6:
                 continue
-            res["sets"] += 1
             truth = rig.left
             names = ("fx", "fy", "cx", "cy") + truth.param_names[:2]
             true = dict(zip(truth.intrinsic_names, truth.intrinsics))
-            for key, vs in (("weighted", views),
-                            ("unweighted", [CornerSet(v.object_mm, v.image_px, v.keys) for v in views])):
+            rows = {}
+            for key, vs in (("weighted", views), ("unweighted", [_plain(v) for v in views])):
                 try:
                     cal = calibrate_planar(vs, None, (640, 480), RefineOptions(distortion=distortion))
                 except edgecal.errors.EdgecalError as exc:
                     print(f"planar {lens} seed {seed} {key}: edgecal failed: {exc}", file=sys.stderr)
-                    continue
+                    break
                 cam, std = cal.cameras[0], cal.camera_std[0]
                 est = dict(zip(cam.intrinsic_names, cam.intrinsics))
-                res[key].append({"focal_pct": 50 * (abs(est["fx"] / true["fx"] - 1) + abs(est["fy"] / true["fy"] - 1)),
-                                 "pp_px": float(np.hypot(est["cx"] - true["cx"], est["cy"] - true["cy"])),
-                                 "rms_px": cal.rms_px,
-                                 "z": [float(abs(est[n] - true[n]) / std[n]) for n in names]})
+                rows[key] = {"seed": seed, "views": len(cal.view_index),
+                             "image_coverage": coverage(cal.corners[0], (640, 480)),
+                             "focal_pct": 50 * (abs(est["fx"] / true["fx"] - 1) + abs(est["fy"] / true["fy"] - 1)),
+                             "pp_px": float(np.hypot(est["cx"] - true["cx"], est["cy"] - true["cy"])),
+                             "rms_px": cal.rms_px, "dropped": len(cal.dropped),
+                             "z": [float(abs(est[n] - true[n]) / std[n]) for n in names]}
+            if len(rows) == 2:                   # scored only when both solves ran: the rows stay paired
+                res["sets"] += 1
+                for key, row in rows.items():
+                    res[key].append(row)
     return out
 
 
 def print_planar(res: dict) -> None:
     for lens, r in res.items():
-        print(f"\n== planar mono, {lens} lens, {r['sets']} rendered hand-held sessions (640x480, 9x6 board, "
-              f"one frame per pose)")
+        print(f"\n== planar mono, {lens} lens, {r['sets']} rendered hand-held sessions of {r['seeds_tried']} seeds "
+              f"(640x480, 9x6 board, one frame per pose)")
         for key in ("weighted", "unweighted"):
             rows = r[key]
             if not rows:
@@ -297,9 +318,13 @@ def print_planar(res: dict) -> None:
             z = np.concatenate([x["z"] for x in rows])
             print(f"{key:<11} focal {np.median([x['focal_pct'] for x in rows]):.4f} %, principal point "
                   f"{np.median([x['pp_px'] for x in rows]):.3f} px, "
-                  f"RMS {np.median([x['rms_px'] for x in rows]):.3f} px; "
-                  f"|error| / sigma over fx fy cx cy and two lens parameters: median {np.median(z):.2f}, "
-                  f"p90 {np.percentile(z, 90):.2f} (consistent: 0.67, 1.64)")
+                  f"RMS {np.median([x['rms_px'] for x in rows]):.3f} px, "
+                  f"dropped {np.mean([x['dropped'] for x in rows]):.1f}/session; |error| / sigma over fx fy cx cy and "
+                  f"two lens parameters ({len(z)}): median {np.median(z):.2f}, p90 {np.percentile(z, 90):.2f} "
+                  f"(consistent: 0.67, 1.64), within 1 sigma {100 * np.mean(z < 1):.0f} %, within 2 sigma "
+                  f"{100 * np.mean(z < 2):.0f} % (consistent: 68 %, 95 %); image coverage median "
+                  f"{100 * np.median([x['image_coverage'] for x in rows]):.0f} %, views median "
+                  f"{np.median([x['views'] for x in rows]):.0f}")
 
 
 def print_synthetic(res: dict) -> None:
@@ -311,19 +336,27 @@ def print_synthetic(res: dict) -> None:
     print(head)
     for key, bucket in res["sets"].items():
         med = {}
-        for method in ("edgecal", "opencv"):
-            rows = bucket[method]
+        for method in ("edgecal", "unweighted", "opencv"):
+            rows = bucket.get(method, [])
             if not rows:
                 continue
-            med[method] = _median_table(rows, METRICS + (("z_fx", "z_T", "z_all") if method == "edgecal" else ()))
-            line = f"{key:<18}{method:<9}" + "".join(f"{med[method][m]:>12.4f}" for m in METRICS)
-            if method == "edgecal":
+            med[method] = _median_table(rows, METRICS + (("z_fx", "z_T", "z_all") if method != "opencv" else ()))
+            line = f"{key:<18}{method[:8]:<9}" + "".join(f"{med[method][m]:>12.4f}" for m in METRICS)
+            if method != "opencv":
                 line += f"{med[method]['z_fx']:>7.2f}{med[method]['z_T']:>7.2f}{med[method]['z_all']:>7.2f}"
             print(line)
         if "edgecal" in med and "opencv" in med:
             print(f"{'':<18}{'ratio':<9}" + "".join(
                 f"{med['opencv'][m] / med['edgecal'][m]:>12.2f}" if med["edgecal"][m] > 1e-6 else f"{'-':>12}"
                 for m in METRICS))
+        if bucket.get("unweighted"):
+            # paired over the same pairs and draws: weighted / unweighted error, median and how often lower
+            for m in ("focal_pct", "rot_deg", "baseline_mm", "recon_mm"):
+                w = np.array([r[m] for r in bucket["edgecal"]])
+                u = np.array([r[m] for r in bucket["unweighted"]])
+                if len(w) == len(u):
+                    print(f"{'':<18}weighted vs unweighted {m}: median {np.median(w):.4f} / {np.median(u):.4f}, "
+                          f"mean {np.mean(w):.4f} / {np.mean(u):.4f}, weighted lower in {np.sum(w < u)}/{len(w)}")
         n = len(bucket["edgecal"])
         if n:
             kept = {m: sum(r.get(f"kept_{m}", 0) for r in bucket["edgecal"]) for m in ("tsai", "dlt")}
@@ -360,7 +393,21 @@ def _edgecal_corners(path: Path, target) -> CornerSet:
                      None if d.covariance is None else d.covariance[ok])
 
 
+def _kept_residuals(cal) -> dict:
+    """(camera, input view, corner key) -> residual (2,) px of every corner a calibration kept."""
+    out = {}
+    for c, per_view in enumerate(cal.corners):
+        for k, cs in enumerate(per_view):
+            for key, r, ok in zip(cs.keys, cal.residuals_px[c][k], cal.inliers[c][k]):
+                if ok:
+                    out[(c, cal.view_index[k], key)] = r
+    return out
+
+
 def bouguet(args: argparse.Namespace) -> dict | None:
+    """Bouguet's stereo set: edgecal (its corners, weighted by their covariances and unweighted) and OpenCV
+    (findChessboardCorners + cornerSubPix, stereoCalibrate); the edgecal solutions also on the corners both
+    kept (an RMS over more corners is not comparable)."""
     d = REAL / "opencv_stereo_9x6"
     if not d.is_dir():
         print("\n== opencv_stereo_9x6: absent, skipped")
@@ -368,7 +415,9 @@ def bouguet(args: argparse.Namespace) -> dict | None:
     target = planar_target(9, 6, 30.0)
     lp, rp = sorted(d.glob("left*.jpg")), sorted(d.glob("right*.jpg"))
     out = {}
+    cals = {}
     for name, getter in (("edgecal", lambda p: _edgecal_corners(p, target)),
+                         ("unweighted", lambda p: _plain(_edgecal_corners(p, target))),
                          ("opencv", lambda p: _cv_corners(p, target.boards[0]))):
         t0 = time.perf_counter()
         left = [getter(p) for p in lp]
@@ -379,28 +428,43 @@ def bouguet(args: argparse.Namespace) -> dict | None:
         right = [c if c is not None else empty for c in right]
         found = sum(len(c) > 0 for c in left + right)
         t0 = time.perf_counter()
-        if name == "edgecal":
+        if name != "opencv":
             cal = calibrate_planar(left, right, (640, 480), RefineOptions(distortion="k1k2p1p2k3"))
+            cals[name] = cal
             k = [c.camera_matrix for c in cal.cameras]
             t_vec, om, rms = cal.translation_mm, cv2.Rodrigues(cal.rotation)[0].ravel(), cal.rms_px
             extra = {"T_std_mm": cal.translation_std_mm.tolist(), "fx_std": cal.camera_std[0]["fx"],
+                     "fy_std": cal.camera_std[0]["fy"], "cc_std": [cal.camera_std[0]["cx"], cal.camera_std[0]["cy"]],
+                     "om_std_rad": cal.rotation_std_rad.tolist(),
                      "recon_mm": cal.reconstruction.mean_mm, "epipolar_rms_px": cal.rectification.epipolar_rms_px,
-                     "dropped": len(cal.dropped), "pairs": len(cal.view_index)}
+                     "dropped": len(cal.dropped), "pairs": len(cal.view_index),
+                     "noise_floor_px": float(getattr(cal, "noise_floor_px", 0.0)),
+                     "corners_kept": int(sum(int(m.sum()) for per in cal.inliers for m in per))}
         else:
             pairs = [(a, b) for a, b in zip(left, right) if len(a) and len(b)]
             obj = [a.object_mm.astype(np.float32) for a, _ in pairs]
             il = [a.image_px.astype(np.float32).reshape(-1, 1, 2) for a, _ in pairs]
             ir = [b.image_px.astype(np.float32).reshape(-1, 1, 2) for _, b in pairs]
-            _, k1, d1, _, _ = cv2.calibrateCamera(obj, il, (640, 480), None, None)
+            _, k1, d1, _, _, std1, *_ = cv2.calibrateCameraExtended(obj, il, (640, 480), None, None)
             _, k2, d2, _, _ = cv2.calibrateCamera(obj, ir, (640, 480), None, None)
             rms, k1, d1, k2, d2, r, t = cv2.stereoCalibrate(obj, il, ir, k1, d1, k2, d2, (640, 480),
                                                             flags=cv2.CALIB_USE_INTRINSIC_GUESS)[:7]
             k, t_vec, om = [k1, k2], np.ravel(t), cv2.Rodrigues(r)[0].ravel()
-            extra = {"pairs": len(pairs)}
+            # calibrateCamera's own sigma of the left intrinsics (its stereoCalibrate reports none)
+            std1 = np.ravel(std1)
+            extra = {"pairs": len(pairs), "fx_std": float(std1[0]), "fy_std": float(std1[1]),
+                     "cc_std": [float(std1[2]), float(std1[3])], "corners_kept": 2 * 54 * len(pairs)}
         t_cal = time.perf_counter() - t0
         out[name] = {"found": found, "detect_s": t_det, "calibrate_s": t_cal, "fx_left": k[0][0, 0],
                      "fy_left": k[0][1, 1], "cc_left": k[0][:2, 2].tolist(), "fx_right": k[1][0, 0],
                      "T_mm": np.ravel(t_vec).tolist(), "om_rad": om.tolist(), "rms_px": float(rms), **extra}
+    # Like for like: both edgecal solutions on the corners both kept.
+    a, b = _kept_residuals(cals["edgecal"]), _kept_residuals(cals["unweighted"])
+    common = sorted(set(a) & set(b))
+    for name, res in (("edgecal", a), ("unweighted", b)):
+        r = np.array([res[key] for key in common])
+        out[name]["rms_common_px"] = float(np.sqrt(np.mean(np.sum(r ** 2, axis=1))))
+        out[name]["corners_common"] = len(common)
     return out
 
 
@@ -412,14 +476,18 @@ def print_bouguet(res: dict | None) -> None:
           "om (0.00669, 0.00452, -0.00350) rad")
     for name, r in res.items():
         t = r["T_mm"]
-        line = (f"{name:<8} boards found {r['found']}/26, pairs used {r['pairs']}, left fc ({r['fx_left']:.2f}, "
-                f"{r['fy_left']:.2f}) cc ({r['cc_left'][0]:.2f}, {r['cc_left'][1]:.2f}), right fx {r['fx_right']:.2f}, "
+        line = (f"{name:<10} boards found {r['found']}/26, pairs used {r['pairs']}, corners kept {r['corners_kept']}, "
+                f"left fc ({r['fx_left']:.2f}, {r['fy_left']:.2f}) ± ({r['fx_std']:.2f}, {r['fy_std']:.2f}) "
+                f"cc ({r['cc_left'][0]:.2f}, {r['cc_left'][1]:.2f}) ± ({r['cc_std'][0]:.2f}, {r['cc_std'][1]:.2f}), "
+                f"right fx {r['fx_right']:.2f}, "
                 f"T ({t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}) mm, om ({', '.join(f'{v:.5f}' for v in r['om_rad'])}), "
                 f"RMS {r['rms_px']:.3f} px, detect {r['detect_s']:.2f} s, calibrate {r['calibrate_s']:.2f} s")
         if "T_std_mm" in r:
-            line += (f"\n{'':<8} T std ({', '.join(f'{v:.2f}' for v in r['T_std_mm'])}) mm, fx std {r['fx_std']:.2f}, "
+            line += (f"\n{'':<10} T std ({', '.join(f'{v:.2f}' for v in r['T_std_mm'])}) mm, om std "
+                     f"({', '.join(f'{v:.5f}' for v in r['om_std_rad'])}), "
                      f"reconstruction {r['recon_mm']:.3f} mm, epipolar RMS {r['epipolar_rms_px']:.3f} px, "
-                     f"{r['dropped']} corners dropped")
+                     f"{r['dropped']} corners dropped, covariances widened by {r['noise_floor_px']:.3f} px; "
+                     f"RMS on the {r['corners_common']} corners both edgecal solves kept {r['rms_common_px']:.3f} px")
         print(line)
 
 

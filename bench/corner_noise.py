@@ -10,7 +10,9 @@ gradients of 40-70 % across the image and vignetting) and strong foreshortening 
 corner nearest to it (within 1.5 px) and its normalised error e^T Sigma^-1 e computed with the
 covariance the detector reports (2 on average for a consistent 2-D covariance; target mean 1.5-3).
 Printed per condition: corners, RMS error (px), RMS reported sigma (px), normalised error mean, median
-and p95, and the unusable corners. The same on the tracked path (edgecal.detection.tracking, predictions
+and p95, the covariance's shape (the mean squared error along its minor and major axis over the variance
+there, 1 each when consistent, and the median ratio of its major to minor sigma), and the unusable
+corners. The same on the tracked path (edgecal.detection.tracking, predictions
 from the truth corners moved by 0.3 px).
 """
 
@@ -81,7 +83,14 @@ def summarise(errors: list[np.ndarray], covs: list[np.ndarray], unusable: int, v
         return {"views": views, "corners": 0}
     e, c = np.concatenate(errors), np.concatenate(covs)
     nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(c), e)
+    # The covariance's shape: the error along its minor and major axis, each normalised by the sigma there
+    # (1 each when consistent; a shape that is too elongated shows > 1 on the minor axis, < 1 on the major).
+    w, v = np.linalg.eigh(c)
+    along = np.einsum("nji,nj->ni", v, e)
+    axis = np.mean(along ** 2 / w, axis=0)
     return {"views": views, "corners": int(len(e)), "unusable": unusable,
+            "nees_minor_axis": float(axis[0]), "nees_major_axis": float(axis[1]),
+            "sigma_major_over_minor": float(np.median(np.sqrt(w[:, 1] / w[:, 0]))),
             "rms_error_px": float(np.sqrt(np.mean(e ** 2))),
             "rms_sigma_px": float(np.sqrt(np.mean(np.trace(c, axis1=1, axis2=2) / 2))),
             "nees_mean": float(nees.mean()), "nees_median": float(np.median(nees)),
@@ -120,7 +129,8 @@ def main() -> int:
     results: dict = {"commit": commit, "views": args.views, "search": {}, "tracked": {}}
     print(f"corner covariance vs truth, {args.views} renders per condition (640x480, 9x6 board), commit {commit}")
     print(f"{'path':8s} {'condition':14s} {'corners':>7s} {'unusable':>8s} {'rms err':>8s} {'rms sigma':>9s} "
-          f"{'NEES mean':>9s} {'median':>7s} {'p95':>6s}  target mean {TARGET_RANGE[0]}-{TARGET_RANGE[1]}")
+          f"{'NEES mean':>9s} {'median':>7s} {'p95':>6s} {'minor':>6s} {'major':>6s} {'shape':>6s}  "
+          f"target mean {TARGET_RANGE[0]}-{TARGET_RANGE[1]}")
     for path in ("search", "tracked"):
         for cond in CONDITIONS:
             r = run(cond, args.views, path == "tracked")
@@ -130,7 +140,8 @@ def main() -> int:
                 continue
             ok = TARGET_RANGE[0] <= r["nees_mean"] <= TARGET_RANGE[1]
             print(f"{path:8s} {cond:14s} {r['corners']:7d} {r['unusable']:8d} {r['rms_error_px']:8.4f} "
-                  f"{r['rms_sigma_px']:9.4f} {r['nees_mean']:9.2f} {r['nees_median']:7.2f} {r['nees_p95']:6.1f}  "
+                  f"{r['rms_sigma_px']:9.4f} {r['nees_mean']:9.2f} {r['nees_median']:7.2f} {r['nees_p95']:6.1f} "
+                  f"{r['nees_minor_axis']:6.2f} {r['nees_major_axis']:6.2f} {r['sigma_major_over_minor']:6.2f}  "
                   f"{'met' if ok else 'NOT met'}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=2))

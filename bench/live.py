@@ -261,6 +261,197 @@ def detection_times(folder: Path, truth: dict, n: int) -> dict:
             "opencv_over_tracked": float(np.median(ref) / np.median(tracked))}
 
 
+class CovarianceTimer:
+    """Times every call of the detector's corner_covariance (wall and thread CPU), or replaces it by a
+    constant 0.1 px covariance (``ablate``: what detection costs without it), in every edgecal.detection
+    module that calls it. A bench instrument: restored on exit."""
+
+    def __init__(self, ablate: bool = False) -> None:
+        self.ablate = ablate
+        self.wall_s: list[float] = []
+        self.cpu_s: list[float] = []
+        self._saved: list[tuple[object, object]] = []
+
+    def __enter__(self) -> CovarianceTimer:
+        import edgecal.detection.corner_covariance as cc
+        original = cc.corner_covariance
+
+        def timed(grey, smooth, smoothing_sigma, corners, *args, **kwargs):
+            if self.ablate:
+                n = len(corners)
+                return np.broadcast_to(0.01 * np.eye(2), (n, 2, 2)).copy(), [""] * n
+            t0, c0 = time.perf_counter(), time.thread_time()
+            out = original(grey, smooth, smoothing_sigma, corners, *args, **kwargs)
+            self.wall_s.append(time.perf_counter() - t0)
+            self.cpu_s.append(time.thread_time() - c0)
+            return out
+
+        for name, mod in list(sys.modules.items()):
+            if name.startswith("edgecal.detection.") and getattr(mod, "corner_covariance", None) is original \
+                    and mod is not cc:
+                self._saved.append((mod, original))
+                mod.corner_covariance = timed
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for mod, original in self._saved:
+            mod.corner_covariance = original
+        self._saved.clear()
+
+    def take(self) -> tuple[float, float]:
+        """(wall s, CPU s) of the calls since the last take."""
+        w, c = sum(self.wall_s), sum(self.cpu_s)
+        self.wall_s.clear()
+        self.cpu_s.clear()
+        return w, c
+
+
+def _strip_covariances(dets: list) -> list:
+    """The detections with the same usable corners and no covariances (every corner weighs alike)."""
+    from dataclasses import replace
+    out = []
+    for d in dets:
+        ok = d.usable()
+        out.append(replace(d, corners=d.corners[ok], ids=d.ids[ok], quality=d.quality[ok], covariance=None,
+                           unusable=[]))
+    return out
+
+
+def offline(folder: Path, truth: dict, n: int) -> dict:
+    """On ``n`` frames, each image searched in full once: the corner covariance's cost (CPU ms per stereo frame,
+    single thread, with it and with it replaced by a constant, alternating per frame so load drifts hit both
+    alike; in the full search, in tracked verification and in the pose), and the pose from the same
+    detections weighted by the covariances (the default, covariance_scale model) against unweighted
+    (covariance_scale residual): errors and NEES against the truth."""
+    from edgecal.config import packaged_config_path
+    from edgecal.detection.tracking import track_boards
+    from edgecal.pose import estimate_pose
+    from edgecal.pose.predict import extrapolate_pose, predict_corners
+    from edgecal.pose.types import PoseSettings
+    from edgecal.stream.config import load_stereo_cameras
+    target = edgecal.load_target(packaged_config_path("targets/robot-3boards.yaml"))
+    cams = load_stereo_cameras(folder / "rig.yaml", "rig", "bench")
+    cv2.setNumThreads(1)
+    timer = CovarianceTimer()
+    ablated = CovarianceTimer(ablate=True)
+    t = {k: [] for k in ("search", "search_cov", "search_without", "track", "track_cov", "track_without",
+                         "pose", "pose_unweighted")}
+    poses: dict = {"weighted": [], "unweighted": []}
+    frames = truth["frames"][2:n + 2]
+    for k, fr in enumerate(frames, start=2):
+        images = [cv2.imread(str(folder / fr[s]), cv2.IMREAD_GRAYSCALE) for s in ("left", "right")]
+        a, b = truth["frames"][k - 2], truth["frames"][k - 1]
+        R, tt = extrapolate_pose(np.array(a["R_rig_robot"]), np.array(a["t_rig_robot_m"]), a["stamp_ns"],
+                                 np.array(b["R_rig_robot"]), np.array(b["t_rig_robot_m"]), b["stamp_ns"],
+                                 fr["stamp_ns"])
+        predicted = [predict_corners(R, tt, cams, s, target) for s in ("left", "right")]
+        order = (timer, ablated) if k % 2 else (ablated, timer)
+        for inst in order:
+            # CPU time of this thread (single-threaded numba): a loaded machine's preemption is no one's cost
+            with inst:
+                t0 = time.thread_time()
+                dets = [edgecal.detect(im, target) for im in images]
+                t_search = time.thread_time() - t0
+                cov_search = inst.take()[1]
+                t0 = time.thread_time()
+                for im, pred in zip(images, predicted):
+                    track_boards(im, pred)
+                t_track = time.thread_time() - t0
+                cov_track = inst.take()[1]
+            if inst is timer:
+                t["search"].append(t_search)
+                t["search_cov"].append(cov_search)
+                t["track"].append(t_track)
+                t["track_cov"].append(cov_track)
+                real = dets
+            else:
+                t["search_without"].append(t_search)
+                t["track_without"].append(t_track)
+        for key, (left, right), settings in (
+                ("weighted", real, PoseSettings()),
+                ("unweighted", [_strip_covariances(d) for d in real], PoseSettings(covariance_scale="residual"))):
+            t0 = time.thread_time()
+            pose = estimate_pose(left, right, target, cams, settings)
+            t["pose" if key == "weighted" else "pose_unweighted"].append(time.thread_time() - t0)
+            if pose.valid:
+                dt = pose.t_m - np.array(fr["t_rig_robot_m"])
+                dth = Rotation.from_matrix(pose.R @ np.array(fr["R_rig_robot"]).T).as_rotvec()
+                e = np.concatenate([dt, dth])
+                poses[key].append({"frame": k, "position_mm": 1000 * float(np.linalg.norm(dt)),
+                                   "rotation_deg": float(np.degrees(np.linalg.norm(dth))),
+                                   "nees": float(e @ np.linalg.solve(pose.covariance, e))})
+    ms = {k: 1000 * float(np.median(v)) for k, v in t.items()}
+    out: dict = {"frames": len(frames), "ms_per_stereo_frame": ms,
+                 "covariance_share": {"search": float(np.sum(t["search_cov"]) / np.sum(t["search"])),
+                                      "track": float(np.sum(t["track_cov"]) / np.sum(t["track"]))},
+                 "poses": poses}
+    for key, rows in poses.items():
+        if rows:
+            pos = [r["position_mm"] for r in rows]
+            out[key] = {"valid": len(rows), "position_median_mm": float(np.median(pos)),
+                        "position_p95_mm": float(np.percentile(pos, 95)), "position_max_mm": float(np.max(pos)),
+                        "rotation_max_deg": float(np.max([r["rotation_deg"] for r in rows])),
+                        "nees_mean": float(np.mean([r["nees"] for r in rows]))}
+    return out
+
+
+def print_offline(o: dict, load: tuple[float, float]) -> None:
+    """The offline comparison's lines."""
+    ms, share = o["ms_per_stereo_frame"], o["covariance_share"]
+    print(f"\noffline, {o['frames']} frames (each image searched in full once; load average {load[0]:.1f} before, "
+          f"{load[1]:.1f} after): CPU ms per stereo frame (median), single thread")
+    print(f"  full search: {ms['search']:.1f} ms with covariances (corner_covariance {ms['search_cov']:.1f} ms, "
+          f"{100 * share['search']:.0f} %), {ms['search_without']:.1f} ms with a constant instead "
+          f"(ratio {ms['search'] / ms['search_without']:.2f})")
+    print(f"  tracked verification: {ms['track']:.1f} ms (corner_covariance {ms['track_cov']:.1f} ms, "
+          f"{100 * share['track']:.0f} %), {ms['track_without']:.1f} ms without (ratio "
+          f"{ms['track'] / ms['track_without']:.2f})")
+    print(f"  pose: {ms['pose']:.2f} ms weighted (covariance_scale model), {ms['pose_unweighted']:.2f} ms unweighted "
+          f"(residual)")
+    for key in ("weighted", "unweighted"):
+        if key in o:
+            x = o[key]
+            print(f"  pose {key:<10}: {x['valid']}/{o['frames']} valid, position median {x['position_median_mm']:.3f} "
+                  f"p95 {x['position_p95_mm']:.3f} max {x['position_max_mm']:.3f} mm, rotation max "
+                  f"{x['rotation_max_deg']:.4f} deg, mean NEES {x['nees_mean']:.1f}")
+
+
+def loop_covariance_cost(folder: Path, out: Path, truth: dict, args: argparse.Namespace, pairs: int) -> dict:
+    """The corner covariance's share of the live loop: as-fast-as-possible tracked runs, alternately with
+    corner_covariance timed (its thread CPU per frame against the loop's CPU per frame) and replaced by a
+    constant (the loop's CPU per frame and rate without it)."""
+    rows: dict = {"timed": [], "without": []}
+    load0 = os.getloadavg()[0]
+    # One untimed run first: the first run of a process loads the numba kernels, which is no frame's cost.
+    run_loop(folder, out, False, args.endpoint, True, not args.decode, args.covariance_scale)
+    for i in range(pairs):
+        for key in (("timed", "without") if i % 2 == 0 else ("without", "timed")):
+            with CovarianceTimer(ablate=key == "without") as timer:
+                run = run_loop(folder, out, False, args.endpoint, True, not args.decode, args.covariance_scale)
+            frames = max(run["timed_frames"], 1)
+            e = pose_errors(run["messages"], truth)
+            rows[key].append({"fps": run["timed_frames"] / run["wall_s"],
+                              "cpu_ms_per_frame": 1000 * run["cpu_s"] / frames,
+                              "position_max_mm": e.get("position_mm", {}).get("max", float("nan")),
+                              "nees_mean": e.get("nees_mean", float("nan")),
+                              "covariance_cpu_ms_per_frame": 1000 * sum(timer.cpu_s) / frames,
+                              "tracked": run["stats"].tracked_frames, "frames": run["stats"].frames})
+    med = {k: {m: float(np.median([r[m] for r in v])) for m in v[0]} for k, v in rows.items()}
+    t, w = med["timed"], med["without"]
+    print(f"\ncorner covariance in the live loop ({pairs} pairs of as-fast-as-possible tracked runs, load average "
+          f"{load0:.1f} before, {os.getloadavg()[0]:.1f} after; medians): with it {t['fps']:.1f} fps, "
+          f"{t['cpu_ms_per_frame']:.1f} CPU ms per frame, of which corner_covariance "
+          f"{t['covariance_cpu_ms_per_frame']:.1f} "
+          f"ms ({100 * t['covariance_cpu_ms_per_frame'] / t['cpu_ms_per_frame']:.0f} %); "
+          f"with a constant instead "
+          f"{w['fps']:.1f} fps, {w['cpu_ms_per_frame']:.1f} CPU ms per frame "
+          f"(ratio {t['cpu_ms_per_frame'] / w['cpu_ms_per_frame']:.2f}); "
+          f"tracked poses with the covariances: mean NEES {t['nees_mean']:.1f}, "
+          f"position max {t['position_max_mm']:.3f} mm")
+    return {"runs": rows, "median": med, "load_average_before": load0,
+            "load_average_after": os.getloadavg()[0]}
+
+
 def summarise(run: dict, truth: dict) -> dict:
     """The figures of one run: rate, CPU, latency, counters and pose errors."""
     st = run["stats"]
@@ -292,6 +483,13 @@ def main() -> int:
                          "(--photometric is then ignored)")
     ap.add_argument("--covariance-scale", default="model", choices=("model", "residual", "noise", "max"),
                     help="pose.covariance_scale of the loop (default model)")
+    ap.add_argument("--offline", type=int, default=0, metavar="N",
+                    help="also on N frames: the corner covariance's cost (search, tracking, pose) and the pose "
+                         "weighted vs unweighted on the same detections")
+    ap.add_argument("--offline-only", action="store_true", help="only the --offline part (no loop runs)")
+    ap.add_argument("--covariance-cost", type=int, default=0, metavar="K",
+                    help="also K pairs of as-fast-as-possible tracked loop runs, one with the corner covariance "
+                         "timed and one with it replaced by a constant (alternating): its share of the loop")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -313,6 +511,20 @@ def main() -> int:
                      "scene": args.scene, "covariance_scale": args.covariance_scale,
                      "photometric": args.photometric, "exposure_ms": args.exposure_ms,
                      "preload": not args.decode, "load_average_before": os.getloadavg()[0]}
+    if args.offline:
+        load0 = os.getloadavg()[0]
+        results["offline"] = offline(folder, truth, args.offline)
+        print_offline(results["offline"], (load0, os.getloadavg()[0]))
+        if args.offline_only and not args.covariance_cost:
+            if args.json:
+                Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+            return 0
+    if args.covariance_cost:
+        results["covariance_cost"] = loop_covariance_cost(folder, out, truth, args, args.covariance_cost)
+        if args.offline_only:
+            if args.json:
+                Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+            return 0
     # The real-time pass is repeated: on a shared machine its tail latency varies from run to run.
     realtime_runs = [summarise(run_loop(folder, out, True, args.endpoint, True, not args.decode,
                                         args.covariance_scale), truth) for _ in range(args.repeat)]

@@ -133,6 +133,7 @@ class Calibration:
     view_index: list[int] = field(default_factory=list)  # input image (pair) of each view, planar case
     skipped_views: dict[int, str] = field(default_factory=dict)  # input view -> why it was not used
     view_pose_std: list[np.ndarray] = field(default_factory=list)  # per view: std of rx ry rz (rad), tx ty tz (mm)
+    noise_floor_px: float = 0.0   # weighted: sigma per axis the fit added to every corner's covariance
 
     @property
     def is_stereo(self) -> bool:
