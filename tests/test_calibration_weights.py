@@ -97,7 +97,7 @@ def _real_like_views(rng: np.random.Generator, n: int = 8) -> tuple[object, list
         centre = np.array([100.0, 62.5, 0.0]) + rng.normal(0, 30, 3) * [1, 1, 0]
         tilt = np.radians(rng.uniform(-35, 35, 2))
         eye = centre + 480.0 * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])
-        cs = project_target(target, cam, look_at(eye, centre, up=np.array([0.0, -1.0, 0.0])), SIZE)
+        cs = project_target(target, cam, RigidTransform.looking_at(eye, centre, up=np.array([0.0, -1.0, 0.0])), SIZE)
         m = len(cs)
         s = rng.uniform(0.01, 0.03, m)
         err = rng.normal(0.0, 0.12, (m, 2)) + s[:, None] * rng.standard_normal((m, 2))
