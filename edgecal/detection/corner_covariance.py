@@ -68,13 +68,15 @@ _PYRDOWN_NOISE_GAIN = 0.273
 MAX_CONDITION = 1e6
 
 
-def covariance_noise_sigma(grey: np.ndarray) -> float:
+def covariance_noise_sigma(grey: np.ndarray, half_noise: float | None = None) -> float:
     """The image noise (grey levels, 1 sigma) that moves the corners.
 
     The detector's estimate (candidates.estimate_noise_sigma) looks at pixel-to-pixel differences, which
     JPEG compression and demosaicing remove while the noise at the scale of a corner window stays; the
     same estimate at half resolution sees that, so the larger of the two is taken. Quantisation (1/12
-    grey level^2) is added: a noise-free 8-bit image still has it.
+    grey level^2) is added: a noise-free 8-bit image still has it. ``half_noise``: that half-resolution
+    estimate (estimate_noise_sigma of cv2.pyrDown(grey)) when the caller already has it (the detector's
+    pyramid does): a second pyrDown of a 1280x800 image would cost more than the covariances themselves.
     """
     import cv2
 
@@ -82,8 +84,10 @@ def covariance_noise_sigma(grey: np.ndarray) -> float:
 
     # Every 6th pixel at full resolution: tens of thousands of samples, a few times cheaper.
     sigma = estimate_noise_sigma(grey, stride=6)
-    if min(grey.shape) >= 16:
-        sigma = max(sigma, estimate_noise_sigma(cv2.pyrDown(grey)) / _PYRDOWN_NOISE_GAIN)
+    if half_noise is None and min(grey.shape) >= 16:
+        half_noise = estimate_noise_sigma(cv2.pyrDown(grey))
+    if half_noise is not None:
+        sigma = max(sigma, half_noise / _PYRDOWN_NOISE_GAIN)
     return float(np.sqrt(sigma * sigma + 1.0 / 12.0))
 
 
@@ -256,13 +260,15 @@ def noise_kernel(smoothing_sigma: float) -> np.ndarray:
 
 
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
-                      spacing: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+                      spacing: np.ndarray | None = None, half_noise: float | None = None
+                      ) -> tuple[np.ndarray, list[str]]:
     """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, and why a corner is unusable.
 
     grey: (H, W) uint8, the image; smooth: the detector's smoothed float32 image of it (candidates.smooth_image
     with ``smoothing_sigma``) on which the corners were refined; corners: (N, 2) pixels; spacing: (N,)
     the local square size the refinement window came from (default: nearest_spacing of the corners).
-    Returns (N, 2, 2) covariances, NaN for an unusable corner, and (N,) reasons ("" for a usable one).
+    half_noise: see covariance_noise_sigma. Returns (N, 2, 2) covariances, NaN for an unusable corner, and
+    (N,) reasons ("" for a usable one).
     """
     corners = np.ascontiguousarray(np.asarray(corners, dtype=np.float64).reshape(-1, 2))
     n = len(corners)
@@ -273,7 +279,7 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     half = subpixel_window(spacing)
     st = window_statistics(np.ascontiguousarray(smooth, dtype=np.float32), corners, half,
                            noise_kernel(smoothing_sigma))
-    noise2 = covariance_noise_sigma(grey) ** 2
+    noise2 = covariance_noise_sigma(grey, half_noise) ** 2
     a = st[:, W_AXX] * st[:, W_AYY] - st[:, W_AXY] ** 2
     tr = st[:, W_AXX] + st[:, W_AYY]
     ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)

@@ -129,8 +129,10 @@ class _Level:
     """The images one pyramid level works on; the gradients are computed on first use only (a level that
     only refines corners found on a coarser one never needs them)."""
 
-    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None) -> None:
+    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None) -> None:
         self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
+        # estimate_noise_sigma of cv2.pyrDown(grey) when the pyramid measured it (the covariances reuse it)
+        self.half_noise = half_noise
         self.grey = grey
         self.smoothing_sigma = smoothing_sigma(self.noise_sigma)
         self.smooth = smooth_image(grey, self.smoothing_sigma)
@@ -201,7 +203,8 @@ def add_covariances(detections: list[Detection], level: _Level) -> None:
         return
     xy = np.concatenate([d.corners for d in detections])
     spacing = np.concatenate([nearest_spacing(d.corners) for d in detections])
-    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing)
+    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing,
+                                     level.half_noise)
     start = 0
     for d in detections:
         d.covariance = cov[start:start + len(d.corners)]
@@ -229,7 +232,7 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     half, half_grids = _find_grids(half_level, p)
     _boards_from_grids(half_level, half_grids, target, p, half)
     # pyrDown's 5x5 binomial filter passes 0.27 of white noise: undo that instead of measuring again.
-    level = _Level(grey, noise_half / 0.273)
+    level = _Level(grey, noise_half / 0.273, noise_half)
     if _all_boards_found(half.detections, target):
         found = _refine_at_full_resolution(half, level, p)
         if found is not None:
