@@ -236,50 +236,28 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     return refined, (ok | (pinned & pinned_ok)) & near & inside, probe_quality(meas, params)
 
 
-def _dense_grid(grid: dict[tuple[int, int], np.ndarray], pad: int) -> tuple[np.ndarray, np.ndarray]:
-    """The grid as a (nu, nv, 2) array of pixels (NaN where no corner), with ``pad`` empty labels on every
-    side, and the label of its [0, 0] entry."""
-    keys = np.array(list(grid.keys()), dtype=np.int64)
-    lo = keys.min(axis=0) - pad
-    span = keys.max(axis=0) - lo + 1 + pad
-    dense = np.full((span[0], span[1], 2), np.nan)
-    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = np.array(list(grid.values()), dtype=np.float64)
-    return dense, lo
-
-
 def _extrapolate(grid: dict[tuple[int, int], np.ndarray], labels: list[tuple[int, int]],
                  outward: tuple[int, int]) -> tuple[list[np.ndarray], list[float], list[tuple[int, int]]]:
     """Predict a new outer line one step ``outward``, each point along its own grid line.
 
     Quadratic extrapolation from the three nearest points of that line (linear from two): unlike a homography
     it follows lines that a fisheye lens bends. Returns (points, nearest-corner distances, their labels).
-    All points of the line at once on the grid as an array (a dictionary look-up per point and neighbour
-    cost more than the extrapolation).
     """
-    if not labels:
-        return [], [], []
     du, dv = outward
-    dense, lo = _dense_grid(grid, 4)
-    lab = np.asarray(labels, dtype=np.int64) - lo
-    step = np.array([du, dv])
-    side = np.array([dv, du])
-
-    def at(offset: np.ndarray) -> np.ndarray:
-        idx = lab + offset
-        inside = ((idx >= 0) & (idx < dense.shape[:2])).all(axis=1)
-        idx = np.where(inside[:, None], idx, 0)
-        return np.where(inside[:, None], dense[idx[:, 0], idx[:, 1]], np.nan)
-
-    p0, p1, p2 = at(-step), at(-2 * step), at(-3 * step)
-    ok = np.isfinite(p0).all(axis=1) & np.isfinite(p1).all(axis=1)
-    new = np.where(np.isfinite(p2).all(axis=1)[:, None], 3.0 * p0 - 3.0 * p1 + p2, 2.0 * p0 - p1)
-    dists = [np.hypot(*(new - p0).T)]
-    for q in (at(side - step), at(-side - step)):
-        d = np.hypot(*(q - p0).T)
-        dists.append(np.where(np.isfinite(d), d, np.inf))
-    spacing = np.min(dists, axis=0)
-    sel = np.nonzero(ok)[0]
-    return [new[i] for i in sel], [float(spacing[i]) for i in sel], [labels[i] for i in sel]
+    pts, spacing, keys = [], [], []
+    for u, v in labels:
+        p0 = grid.get((u - du, v - dv))
+        p1 = grid.get((u - 2 * du, v - 2 * dv))
+        p2 = grid.get((u - 3 * du, v - 3 * dv))
+        if p0 is None or p1 is None:
+            continue
+        new = 2.0 * p0 - p1 if p2 is None else 3.0 * p0 - 3.0 * p1 + p2
+        along = [grid.get((u - du + dv, v - dv + du)), grid.get((u - du - dv, v - dv - du))]
+        dists = [float(np.hypot(*(new - p0)))] + [float(np.hypot(*(q - p0))) for q in along if q is not None]
+        pts.append(new)
+        spacing.append(min(dists))
+        keys.append((u, v))
+    return pts, spacing, keys
 
 
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,

@@ -260,14 +260,15 @@ def noise_kernel(smoothing_sigma: float) -> np.ndarray:
 
 
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
-                      spacing: np.ndarray | None = None, half_noise: float | None = None
+                      spacing: np.ndarray | None = None, noise_sigma: float | None = None
                       ) -> tuple[np.ndarray, list[str]]:
     """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, and why a corner is unusable.
 
     grey: (H, W) uint8, the image; smooth: the detector's smoothed float32 image of it (candidates.smooth_image
     with ``smoothing_sigma``) on which the corners were refined; corners: (N, 2) pixels; spacing: (N,)
     the local square size the refinement window came from (default: nearest_spacing of the corners).
-    half_noise: see covariance_noise_sigma. Returns (N, 2, 2) covariances, NaN for an unusable corner, and
+    noise_sigma: covariance_noise_sigma of the whole image, when grey is a window of it or the caller has it
+    (default: measured on grey). Returns (N, 2, 2) covariances, NaN for an unusable corner, and
     (N,) reasons ("" for a usable one).
     """
     corners = np.ascontiguousarray(np.asarray(corners, dtype=np.float64).reshape(-1, 2))
@@ -279,7 +280,7 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     half = subpixel_window(spacing)
     st = window_statistics(np.ascontiguousarray(smooth, dtype=np.float32), corners, half,
                            noise_kernel(smoothing_sigma))
-    noise2 = covariance_noise_sigma(grey, half_noise) ** 2
+    noise2 = (covariance_noise_sigma(grey) if noise_sigma is None else noise_sigma) ** 2
     a = st[:, W_AXX] * st[:, W_AYY] - st[:, W_AXY] ** 2
     tr = st[:, W_AXX] + st[:, W_AYY]
     ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)

@@ -30,7 +30,7 @@ from edgecal.detection.candidates import (
     snap_to_saddle,
 )
 from edgecal.detection.completion import complete_grid, predict_holes, trim_false_edges
-from edgecal.detection.corner_covariance import corner_covariance
+from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
@@ -53,6 +53,15 @@ SLID_FRACTION = 0.2
 CHESS_RADII_PX = (3.0, 5.0)
 # Grey level from which a pixel counts as saturated (8-bit; JPEG ringing keeps some just below 255).
 SATURATED_LEVEL = 250
+# Boards found at half resolution are refined on a window of the full-resolution image around them: what
+# the refinement, completion's one line beyond the board (with the squares beyond it) and the covariances
+# sample lies within this many grid steps plus pixels (the probe's largest radius and a refinement window)
+# of the outermost corners. Smoothing and gradients then cost the window's area, not the image's.
+WINDOW_MARGIN_STEPS = 2.5
+WINDOW_MARGIN_PX = 48
+# The window's left edge on a multiple of this many pixels: OpenCV's vectorised filters then round every
+# pixel as they do on the whole image (a start off the vector grid moves pixels between vector and scalar code).
+_WINDOW_ALIGN_PX = 32
 _CHESS_RINGS = np.array([np.stack(chess_ring(r)) for r in CHESS_RADII_PX], dtype=np.int64)
 
 
@@ -127,13 +136,20 @@ def _all_boards_found(detections: list[Detection], target: Target) -> bool:
 
 class _Level:
     """The images one pyramid level works on; the gradients are computed on first use only (a level that
-    only refines corners found on a coarser one never needs them)."""
+    only refines corners found on a coarser one never needs them).
 
-    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None) -> None:
+    A level can be a window of its image: ``grey`` is then the window, ``origin`` (x, y) its top-left pixel
+    in the image and ``image`` the whole image (the covariances' noise is measured on all of it).
+    """
+
+    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None,
+                 origin: tuple[int, int] = (0, 0), image: np.ndarray | None = None) -> None:
         self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
-        # estimate_noise_sigma of cv2.pyrDown(grey) when the pyramid measured it (the covariances reuse it)
+        # estimate_noise_sigma of cv2.pyrDown(image) when the pyramid measured it (the covariances reuse it)
         self.half_noise = half_noise
         self.grey = grey
+        self.origin = np.array(origin, dtype=np.float64)
+        self.image = grey if image is None else image
         self.smoothing_sigma = smoothing_sigma(self.noise_sigma)
         self.smooth = smooth_image(grey, self.smoothing_sigma)
         self._gradients: tuple[np.ndarray, np.ndarray] | None = None
@@ -150,6 +166,21 @@ class _Level:
         if self._gradients is None:
             self._gradients = gradients(self.smooth)
         return self._gradients
+
+
+def _window_level(grey: np.ndarray, noise_sigma: float, half_noise: float | None,
+                  box: tuple[float, float, float, float]) -> _Level:
+    """A level on the window of ``grey`` holding ``box`` (x0, y0, x1, y1 pixels), whose smoothed image and
+    gradients equal the whole image's within the box: the window reaches past it by the smoothing kernel
+    and the gradient stencil (clipped at the image's border, where both mirror the same way)."""
+    h, w = grey.shape
+    pad = int(np.ceil(2.5 * smoothing_sigma(noise_sigma))) + 2
+    x0 = max(0, int(math.floor(box[0])) - pad)
+    x0 -= x0 % _WINDOW_ALIGN_PX
+    y0 = max(0, int(math.floor(box[1])) - pad)
+    x1 = min(w, int(math.ceil(box[2])) + pad + 1)
+    y1 = min(h, int(math.ceil(box[3])) + pad + 1)
+    return _Level(grey[y0:y1, x0:x1], noise_sigma, half_noise, (x0, y0), grey)
 
 
 Grid = dict[tuple[int, int], np.ndarray]
@@ -201,10 +232,10 @@ def add_covariances(detections: list[Detection], level: _Level) -> None:
     """Fill in covariance and unusable of ``detections`` (corners refined on ``level``), one call for all."""
     if not detections:
         return
-    xy = np.concatenate([d.corners for d in detections])
+    xy = np.concatenate([d.corners for d in detections]) - level.origin
     spacing = np.concatenate([nearest_spacing(d.corners) for d in detections])
-    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing,
-                                     level.half_noise)
+    noise = covariance_noise_sigma(level.image, level.half_noise)
+    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise)
     start = 0
     for d in detections:
         d.covariance = cov[start:start + len(d.corners)]
@@ -232,11 +263,12 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     half, half_grids = _find_grids(half_level, p)
     _boards_from_grids(half_level, half_grids, target, p, half)
     # pyrDown's 5x5 binomial filter passes 0.27 of white noise: undo that instead of measuring again.
-    level = _Level(grey, noise_half / 0.273, noise_half)
+    noise_full = noise_half / 0.273
     if _all_boards_found(half.detections, target):
-        found = _refine_at_full_resolution(half, level, p)
-        if found is not None:
-            return found, level
+        refined = _refine_at_full_resolution(half, grey, noise_full, noise_half, p)
+        if refined is not None:
+            return refined
+    level = _Level(grey, noise_full, noise_half)
     # pyrDown keeps the even pixels: x_full = 2 x_half.
     debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
     seeds = []
@@ -260,29 +292,49 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     return full, level
 
 
-def _refine_at_full_resolution(half: DetectionDebug, level: _Level, p: DetectorParams) -> DetectionDebug | None:
-    """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution.
+def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sigma: float, half_noise: float,
+                               p: DetectorParams) -> tuple[DetectionDebug, _Level] | None:
+    """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution, on a
+    window of ``grey`` around them (WINDOW_MARGIN_STEPS); also returns that window's level.
 
     None when a board was too small at half resolution to trust (corners closer than MIN_HALF_SPACING_PX
     there), does not stay regular after refinement or extends beyond its size at full resolution: the
     caller then works at full resolution.
     """
+    boxes = []
+    for det in half.detections:
+        if 2.0 * nearest_spacing(det.corners).min() < 2.0 * MIN_HALF_SPACING_PX:
+            return None
+        margin = WINDOW_MARGIN_STEPS * 2.0 * _largest_step(det.corners, det.ids) + WINDOW_MARGIN_PX
+        boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
+    box = np.array(boxes)
+    level = _window_level(grey, noise_sigma, half_noise,
+                          (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
     for det in half.detections:
         spacing = 2.0 * nearest_spacing(det.corners)
-        if spacing.min() < 2.0 * MIN_HALF_SPACING_PX:
-            return None
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
-        xy = refine_corners(level.smooth, 2.0 * det.corners, spacing, max_move_px=3.0)
-        det.corners = _resettle_slid_corners(level.smooth, det.ids, _final_corners(level.smooth, xy, p), p)
-        if not grid_is_regular(det.corners, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
+        xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0)
+        xy = _resettle_slid_corners(level.smooth, det.ids, _final_corners(level.smooth, xy, p), p)
+        if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
-        grown = complete_grid({(int(c), int(r)): q for (c, r), q in zip(det.ids, det.corners)}, level.smooth,
+        grown = complete_grid({(int(c), int(r)): q for (c, r), q in zip(det.ids, xy)}, level.smooth,
                               level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
-        if len(grown) > len(det.corners):
+        if len(grown) > len(xy):
             return None
-    return DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
-                          half.detections, half.notes)
+        det.corners = xy + level.origin
+    return (DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
+                           half.detections, half.notes), level)
+
+
+def _largest_step(corners: np.ndarray, ids: np.ndarray) -> float:
+    """The longest distance (px) between neighbouring corners along a board's rows and columns."""
+    cols, rows = int(ids[:, 0].max()) + 1, int(ids[:, 1].max()) + 1
+    dense = np.full((rows, cols, 2), np.nan)
+    dense[ids[:, 1], ids[:, 0]] = corners
+    steps = np.concatenate([np.linalg.norm(np.diff(dense, axis=axis), axis=-1).ravel() for axis in (0, 1)])
+    steps = steps[np.isfinite(steps)]
+    return float(steps.max()) if steps.size else float(nearest_spacing(corners).max())
 
 
 def _outside_boards(pts: np.ndarray, boards: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
