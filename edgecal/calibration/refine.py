@@ -232,7 +232,10 @@ class _Problem:
         keep = [(o, m) for o, m in zip(obs, masks) if m.any()]
         self.white = None
         if whiten:
-            cov = np.concatenate([o.image_cov_px2[m] for o, m in keep]) + floor_px2 * np.eye(2)
+            covs = [o.image_cov_px2 for o, _ in keep]
+            if any(c is None for c in covs):    # the caller whitens only views that all carry covariances
+                raise ValueError("whitening needs a covariance for every corner")
+            cov = np.concatenate([c[m] for c, (_, m) in zip(covs, keep) if c is not None]) + floor_px2 * np.eye(2)
             self.white = np.transpose(np.linalg.cholesky(np.linalg.inv(cov)), (0, 2, 1))
         self.X = np.concatenate([o.object_mm[m] for o, m in keep])
         self.q = np.concatenate([o.image_px[m] for o, m in keep])
@@ -305,10 +308,17 @@ class _Problem:
         # the Jacobian sparse and solve each step by LSMR, to a tolerance tight enough that the outer iteration
         # converges as fast (scipy's default 1e-8 leaves steps so inexact that 200 evaluations do not suffice).
         dense = self.n_residuals * len(x0) <= _DENSE_JACOBIAN_ENTRIES
-        jac = (lambda p: self.evaluate(p)[1].toarray()) if dense else (lambda p: self.evaluate(p)[1])
+
+        def residuals(p: np.ndarray) -> np.ndarray:
+            return self.evaluate(p)[0]
+
+        def jacobian(p: np.ndarray) -> np.ndarray | scipy.sparse.csr_matrix:
+            jac = self.evaluate(p)[1]
+            return jac.toarray() if dense else jac
+
         kw: dict = {"tr_solver": "exact"} if dense else {"tr_solver": "lsmr", "tr_options": {"atol": 1e-12,
                                                                                               "btol": 1e-12}}
-        sol = least_squares(lambda p: self.evaluate(p)[0], x0, jac=jac, method="trf",
+        sol = least_squares(residuals, x0, jac=jacobian, method="trf",
                             loss="huber" if huber_px else "linear", f_scale=huber_px or 1.0, x_scale="jac",
                             ftol=_TOL, xtol=_TOL, gtol=_TOL, max_nfev=_MAX_NFEV, **kw)
         return sol.x
