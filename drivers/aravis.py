@@ -25,7 +25,7 @@ import numpy as np
 from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source
 from edgecal.drivers.spec import CameraSettings, SourceSpec, buffers_setting
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceAbsent, DeviceError, DeviceLost, DeviceTimeout
 
 INSTALL_HINT = ("install Debian's gir1.2-aravis-0.8 and PyGObject (pip install 'edgecal[aravis]', which needs "
                 "libgirepository1.0-dev, libcairo2-dev and pkg-config to build)")
@@ -69,7 +69,7 @@ def load_aravis() -> Any:
         gi.require_version("Aravis", "0.8")
         from gi.repository import Aravis
     except (ImportError, ValueError) as exc:
-        raise DeviceError(f"the Aravis driver is unavailable ({exc}): {INSTALL_HINT}") from None
+        raise DeviceAbsent(f"the Aravis driver is unavailable ({exc}): {INSTALL_HINT}") from None
     return Aravis
 
 
@@ -128,9 +128,8 @@ class AravisSource(Source):
     live = True
 
     def __init__(self, spec: SourceSpec) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
-        self.settings = spec.settings
         self._camera: Any = None
         self._device: Any = None   # the camera's ArvDevice, polled for a lost camera (see _control_lost)
         self._stream: Any = None
@@ -162,7 +161,7 @@ class AravisSource(Source):
         name = self.spec.target
         return "Fake_1" if name.lower() == "fake" else name
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Connect, apply the settings, allocate buffers and start acquisition."""
         if self._camera is not None:
             return
@@ -171,14 +170,14 @@ class AravisSource(Source):
 
         name = self._name()
         if not name:
-            raise DeviceError("aravis: needs a camera name or IP address (aravis:192.168.1.20, aravis:fake); "
+            raise DeviceAbsent("aravis: needs a camera name or IP address (aravis:192.168.1.20, aravis:fake); "
                               "`edgecal sources` lists them")
         if name.startswith("Fake_"):
             Aravis.enable_interface("Fake")
         try:
             self._camera = Aravis.Camera.new(name)
         except GLib.Error as exc:
-            raise DeviceError(f"{self.uri}: cannot open the camera ({exc.message}); check the address/name "
+            raise DeviceAbsent(f"{self.uri}: cannot open the camera ({exc.message}); check the address/name "
                               "with `edgecal sources`, the cable and the camera's power") from None
         try:
             self._configure(Aravis, GLib)
@@ -301,8 +300,7 @@ class AravisSource(Source):
 
     def _set_control(self, what: str, value: float) -> float:
         from gi.repository import GLib
-        if self._camera is None:
-            raise DeviceError(f"{self.uri}: not open")
+        self.require_open(f"setting {what}")
         try:
             if what == "exposure_us":
                 self._camera.set_exposure_time(float(value))
@@ -317,14 +315,11 @@ class AravisSource(Source):
 
     def trigger(self) -> None:
         """Fire a software trigger (``trigger: software``)."""
-        if self._camera is None:
-            raise DeviceError(f"{self.uri}: not open")
+        self.require_open("trigger()")
         self._camera.software_trigger()
 
-    def read(self, timeout_s: float | None = None) -> Frame:
-        """The next complete frame; DeviceError after ``timeout_s`` without one or when the camera is lost."""
-        if self._stream is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+    def _read(self, timeout_s: float | None) -> Frame:
+        """The next complete frame; DeviceTimeout after ``timeout_s`` without one, DeviceLost when it is gone."""
         from gi.repository import Aravis
         timeout = self.settings.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout
@@ -335,11 +330,11 @@ class AravisSource(Source):
             if self._lost.is_set() or self._control_lost(probe=idle):
                 self._lost.set()
                 self._failed = True
-                raise DeviceError(f"{self.uri}: lost contact with the camera (unplugged or powered off?)")
+                raise DeviceLost(f"{self.uri}: lost contact with the camera (unplugged or powered off?)")
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 self._failed = True
-                raise DeviceError(f"{self.uri}: no frame within {timeout:g} s (camera stopped sending, "
+                raise DeviceTimeout(f"{self.uri}: no frame within {timeout:g} s (camera stopped sending, "
                                   "unplugged, or waiting for a trigger?)")
             # Wait in slices so that a lost camera is reported promptly.
             buf = self._stream.timeout_pop_buffer(int(min(remaining, 0.1) * 1e6))
@@ -366,7 +361,7 @@ class AravisSource(Source):
             self._seq = frame_id
             return Frame(image, stamp, recv, frame_id, self.spec.camera_id, self.exposure_us, self.gain_db)
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Stop acquisition and drop every reference to the device, also after an error.
 
         A camera that has died no longer answers, and libaravis's own teardown (stop acquisition,

@@ -17,6 +17,7 @@ from __future__ import annotations
 import abc
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -55,9 +56,13 @@ class StereoFrame:
 class Source(abc.ABC):
     """A camera (or a replay of one). Open on ``__enter__``, release on ``__exit__``/``close()``.
 
-    ``read(timeout_s)`` blocks for the next frame and raises DeviceError when none arrives in time
-    or the device is gone; iteration ends (StopIteration) only when a finite source is exhausted.
-    ``close()`` always releases the device, also after an error, and may be called twice.
+    ``read(timeout_s)`` blocks for the next frame and raises DeviceTimeout when none arrives in time,
+    DeviceLost when the device is gone (both DeviceError); iteration ends (StopIteration) only when a
+    finite source is exhausted. ``close()`` always releases the device, also after an error, and may be
+    called twice. ``read()`` before ``open()`` is a bug of the caller: RuntimeError.
+
+    A driver implements ``_open``, ``_read`` and ``_close``; the public methods here keep the open state
+    and the guard, so that no driver repeats them.
     """
 
     uri: str = ""
@@ -67,6 +72,17 @@ class Source(abc.ABC):
     # True when a frame is made when it is read, as fast as it is read (a replay with pace: fast): a
     # latest-frame-wins reader then waits for its frame to be taken instead of overwriting it in a spin.
     on_demand: bool = False
+    _is_open: bool = False
+
+    def __init__(self, uri: str, settings: Any = None) -> None:
+        self.uri = uri
+        self.settings = settings        # the driver's settings (SourceSpec.settings), None for wrappers
+        self._is_open = False
+
+    @property
+    def is_open(self) -> bool:
+        """True between a successful ``open()`` and ``close()``."""
+        return self._is_open
 
     def describe(self) -> dict:
         """The source's URI and settings as plain JSON-able values (written into recording manifests)."""
@@ -77,17 +93,37 @@ class Source(abc.ABC):
         """Frames this source knowingly discarded (overwritten, unpaired, lost by the device)."""
         return 0
 
-    @abc.abstractmethod
     def open(self) -> None:
         """Open the device (or file) and start streaming."""
+        self._open()
+        self._is_open = True
 
-    @abc.abstractmethod
-    def read(self, timeout_s: float | None = None):
+    def read(self, timeout_s: float | None = None) -> Any:
         """The next frame (Frame, or StereoFrame for a StereoSource); None when a finite source ends."""
+        self.require_open("read()")
+        return self._read(timeout_s)
+
+    def close(self) -> None:
+        """Stop streaming and release the device; safe to call more than once (and after a failed open)."""
+        self._is_open = False
+        self._close()
+
+    def require_open(self, call: str) -> None:
+        """RuntimeError unless the source is open: ``call`` (e.g. "read()") was used before ``open()``."""
+        if not self._is_open:
+            raise RuntimeError(f"{self.uri}: {call} before open() (use the source as a context manager)")
 
     @abc.abstractmethod
-    def close(self) -> None:
-        """Stop streaming and release the device; safe to call more than once."""
+    def _open(self) -> None:
+        """The driver's open: connect, apply the settings, start streaming (raise DeviceError when it cannot)."""
+
+    @abc.abstractmethod
+    def _read(self, timeout_s: float | None) -> Any:
+        """The driver's read of one frame (the source is open)."""
+
+    @abc.abstractmethod
+    def _close(self) -> None:
+        """The driver's release of everything it holds; called also after a failed or no open."""
 
     def __enter__(self) -> Source:
         self.open()

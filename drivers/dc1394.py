@@ -25,7 +25,7 @@ import numpy as np
 from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source
 from edgecal.drivers.spec import CameraSettings, SourceSpec, buffers_setting
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceAbsent, DeviceError, DeviceTimeout
 
 LIBRARY_NAMES = ("libdc1394.so.25", "libdc1394.so.22", "libdc1394.so")
 
@@ -116,7 +116,7 @@ def load_library() -> Any:
         except OSError:
             continue
     if lib is None:
-        raise DeviceError("the IEEE-1394 driver is unavailable: libdc1394 is not installed "
+        raise DeviceAbsent("the IEEE-1394 driver is unavailable: libdc1394 is not installed "
                           "(Debian/Ubuntu: apt-get install libdc1394-25)")
     # one-letter type names keep the prototype table below readable
     P, V, U32, I = ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uint32, ctypes.c_int  # noqa: E741
@@ -158,12 +158,12 @@ def list_cameras() -> list[int]:
     lib = load_library()
     ctx = lib.dc1394_new()
     if not ctx:
-        raise DeviceError("libdc1394 could not start (no FireWire support in this kernel?)")
+        raise DeviceAbsent("libdc1394 could not start (no FireWire support in this kernel?)")
     try:
         lst = ctypes.POINTER(CameraList)()
         err = lib.dc1394_camera_enumerate(ctx, ctypes.byref(lst))
         if err != 0:
-            raise DeviceError(f"IEEE-1394: cannot enumerate cameras ({lib.dc1394_error_get_string(err).decode()})")
+            raise DeviceAbsent(f"IEEE-1394: cannot enumerate cameras ({lib.dc1394_error_get_string(err).decode()})")
         try:
             return [int(lst.contents.ids[i].guid) for i in range(lst.contents.num)]
         finally:
@@ -201,9 +201,8 @@ class DC1394Source(Source):
     live = True
 
     def __init__(self, spec: SourceSpec) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
-        self.settings = spec.settings
         self._lib: Any = None
         self._ctx: Any = None
         self._cam: Any = None
@@ -227,7 +226,7 @@ class DC1394Source(Source):
             msg = self._lib.dc1394_error_get_string(err).decode()
             raise DeviceError(f"{self.uri}: {what} failed ({msg})")
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Find the camera on the bus, apply the settings and start the isochronous transfer."""
         if self._cam is not None:
             return
@@ -235,17 +234,17 @@ class DC1394Source(Source):
         guids = list_cameras()
         want = int(self.spec.target, 16) if self.spec.target else None
         if want is None and not guids:
-            raise DeviceError(f"{self.uri}: no IEEE-1394 camera found (is the FireWire card present, the camera "
+            raise DeviceAbsent(f"{self.uri}: no IEEE-1394 camera found (is the FireWire card present, the camera "
                               "plugged in and powered, and /dev/fw* readable?)")
         if want is not None and want not in guids:
             found = ", ".join(f"{g:016x}" for g in guids) or "none"
-            raise DeviceError(f"{self.uri}: no IEEE-1394 camera with GUID {want:016x} (found: {found})")
+            raise DeviceAbsent(f"{self.uri}: no IEEE-1394 camera with GUID {want:016x} (found: {found})")
         self.guid = want if want is not None else guids[0]
         self._ctx = lib.dc1394_new()
         self._cam = lib.dc1394_camera_new(self._ctx, ctypes.c_uint64(self.guid))
         if not self._cam:
             self.close()
-            raise DeviceError(f"{self.uri}: cannot open camera {self.guid:016x} (in use by another program?)")
+            raise DeviceAbsent(f"{self.uri}: cannot open camera {self.guid:016x} (in use by another program?)")
         try:
             self._configure()
             self._check(lib.dc1394_capture_setup(self._cam, self.settings.buffers, CAPTURE_FLAGS_DEFAULT),
@@ -312,16 +311,14 @@ class DC1394Source(Source):
         self._check(lib.dc1394_feature_set_absolute_control(cam, feature, SWITCH_ON), f"{what} absolute control")
         self._check(lib.dc1394_feature_set_absolute_value(cam, feature, ctypes.c_float(value)), what)
 
-    def read(self, timeout_s: float | None = None) -> Frame:
-        """The next frame; DeviceError when none arrives within the timeout (camera unplugged or stalled)."""
-        if not self._capturing:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+    def _read(self, timeout_s: float | None) -> Frame:
+        """The next frame; DeviceTimeout when none arrives within the timeout (camera unplugged or stalled)."""
         lib = self._lib
         timeout = self.settings.timeout_s if timeout_s is None else timeout_s
         fd = lib.dc1394_capture_get_fileno(self._cam)
         ready, _, _ = select.select([fd], [], [], timeout)
         if not ready:
-            raise DeviceError(f"{self.uri}: no frame within {timeout:g} s (camera unplugged, or waiting for a "
+            raise DeviceTimeout(f"{self.uri}: no frame within {timeout:g} s (camera unplugged, or waiting for a "
                               "trigger?)")
         frame_p = ctypes.POINTER(VideoFrame)()
         self._check(lib.dc1394_capture_dequeue(self._cam, CAPTURE_POLICY_POLL, ctypes.byref(frame_p)),
@@ -342,7 +339,7 @@ class DC1394Source(Source):
         self._seq += 1
         return Frame(image, stamp, recv, self._seq, self.spec.camera_id, self.exposure_us, None)
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Stop transmission and capture, free the camera and the context (safe after errors)."""
         lib = self._lib
         if lib is None:

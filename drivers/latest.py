@@ -11,7 +11,7 @@ import threading
 import time
 
 from edgecal.drivers.base import Source, StereoSource
-from edgecal.errors import DeviceError, InputError
+from edgecal.errors import DeviceError, DeviceLost, DeviceTimeout, InputError
 
 
 class LatestFrameSource(Source):
@@ -26,8 +26,8 @@ class LatestFrameSource(Source):
     """
 
     def __init__(self, inner: Source, timeout_s: float = 2.0) -> None:
+        super().__init__(inner.uri)
         self.inner = inner
-        self.uri = inner.uri
         self.live = inner.live
         self.timeout_s = timeout_s
         self._cond = threading.Condition()
@@ -49,7 +49,7 @@ class LatestFrameSource(Source):
         """The inner source's description."""
         return self.inner.describe()
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Open the inner source and start the reader thread."""
         if self._thread is not None:
             return
@@ -89,10 +89,9 @@ class LatestFrameSource(Source):
                 self._error = exc
                 self._cond.notify_all()
 
-    def read(self, timeout_s: float | None = None):
-        """The newest frame not yet returned; DeviceError if none arrives within the timeout."""
-        if self._thread is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+    def _read(self, timeout_s: float | None):
+        """The newest frame not yet returned; DeviceTimeout if none arrives within the timeout, DeviceLost
+        when the capture thread has died (the inner source's DeviceError is raised again as it was)."""
         timeout = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout
         with self._cond:
@@ -102,13 +101,14 @@ class LatestFrameSource(Source):
                 if self._error is not None:
                     err = self._error
                     if isinstance(err, DeviceError):
-                        raise DeviceError(str(err)) from err
-                    raise DeviceError(f"{self.uri}: capture thread failed: {err}") from err
+                        # The same kind (lost, timeout) with a fresh traceback on every read.
+                        raise type(err)(str(err)) from err
+                    raise DeviceLost(f"{self.uri}: capture thread failed: {err}") from err
                 if self._ended:
                     return None
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise DeviceError(f"{self.uri}: no frame within {timeout:g} s "
+                    raise DeviceTimeout(f"{self.uri}: no frame within {timeout:g} s "
                                       "(camera stopped sending or is disconnected?)")
                 self._cond.wait(remaining)
             frame, self._slot = self._slot, None
@@ -116,7 +116,7 @@ class LatestFrameSource(Source):
             self._cond.notify_all()          # an on-demand reader waits for the slot to be free
             return frame
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Stop the thread and close the inner source (also after an error)."""
         self._stop.set()
         with self._cond:

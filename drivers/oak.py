@@ -24,7 +24,7 @@ from edgecal.camera import CameraModel, StereoRig
 from edgecal.config import setting
 from edgecal.drivers.base import Frame, StereoFrame, StereoSource
 from edgecal.drivers.spec import CameraSettings, SourceSpec, skew_setting
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceAbsent, DeviceError, DeviceLost, DeviceTimeout
 
 DEFAULT_SIZE = (640, 400)
 DEFAULT_FPS = 30.0
@@ -44,7 +44,7 @@ def load_depthai() -> Any:
     try:
         import depthai
     except ImportError as exc:
-        raise DeviceError(f"the DepthAI driver is unavailable ({exc}): pip install 'depthai>=3'") from None
+        raise DeviceAbsent(f"the DepthAI driver is unavailable ({exc}): pip install 'depthai>=3'") from None
     return depthai
 
 
@@ -99,9 +99,8 @@ class OakStereoSource(StereoSource):
     live = True
 
     def __init__(self, spec: SourceSpec) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
-        self.settings = spec.settings
         self._device: Any = None
         self._pipeline: Any = None
         self._queue: Any = None
@@ -113,7 +112,7 @@ class OakStereoSource(StereoSource):
         return {"uri": self.uri, "driver": "depthai", "device": self.device_info, "width": self.size[0],
                 "height": self.size[1], "settings": self.settings.as_dict()}
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Find the device (bounded by DEPTHAI_SEARCH_TIMEOUT), build the pipeline and start it."""
         if self._device is not None:
             return
@@ -123,7 +122,7 @@ class OakStereoSource(StereoSource):
             self._device = dai.Device(dai.DeviceInfo(mxid)) if mxid else dai.Device()
         except RuntimeError as exc:
             which = f"with id {mxid}" if mxid else "at all"
-            raise DeviceError(f"{self.uri}: no DepthAI device found {which} ({exc}); check the USB cable and "
+            raise DeviceAbsent(f"{self.uri}: no DepthAI device found {which} ({exc}); check the USB cable and "
                               "power, and that the udev rules let this user open it") from None
         try:
             self.device_info = {"mxid": self._device.getDeviceId(), "name": self._device.getDeviceName()}
@@ -150,8 +149,7 @@ class OakStereoSource(StereoSource):
 
     def calibration(self) -> StereoRig:
         """The device's factory stereo calibration at the streamed size."""
-        if self._device is None:
-            raise DeviceError(f"{self.uri}: not open")
+        self.require_open("calibration()")
         return factory_calibration(self._device.readCalibration(), *self.size)
 
     def _frame(self, img: Any, recv: int, side: str) -> Frame:
@@ -159,21 +157,19 @@ class OakStereoSource(StereoSource):
         return Frame(img.getFrame(), _ns(img.getTimestamp()), recv, int(img.getSequenceNum()),
                      f"{self.spec.camera_id}#{side}", _ns(exposure) / 1000.0 if exposure else None, None)
 
-    def read(self, timeout_s: float | None = None) -> StereoFrame:
-        """The next synchronised pair; DeviceError after the timeout or when the device is lost."""
-        if self._queue is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+    def _read(self, timeout_s: float | None) -> StereoFrame:
+        """The next synchronised pair; DeviceTimeout after the timeout, DeviceLost when the device is lost."""
         timeout = self.settings.timeout_s if timeout_s is None else timeout_s
         try:
             group = self._queue.get(datetime.timedelta(seconds=timeout))
         except RuntimeError as exc:
-            raise DeviceError(f"{self.uri}: the device stopped ({exc}); unplugged or out of power?") from None
+            raise DeviceLost(f"{self.uri}: the device stopped ({exc}); unplugged or out of power?") from None
         if group is None:
-            raise DeviceError(f"{self.uri}: no synchronised pair within {timeout:g} s")
+            raise DeviceTimeout(f"{self.uri}: no synchronised pair within {timeout:g} s")
         recv = time.monotonic_ns()
         return StereoFrame(self._frame(group["left"], recv, "left"), self._frame(group["right"], recv, "right"))
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Stop the pipeline and close the device (safe after errors)."""
         pipeline, device = self._pipeline, self._device
         self._pipeline = self._device = self._queue = None

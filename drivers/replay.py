@@ -37,7 +37,7 @@ from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.recording import MANIFEST, load_manifest
 from edgecal.drivers.spec import SourceSettings, SourceSpec, pace_setting
-from edgecal.errors import DeviceError, InputError
+from edgecal.errors import InputError
 from edgecal.fileio import read_input
 from edgecal.imageheader import image_size
 from edgecal.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, image_files, read_image
@@ -211,8 +211,8 @@ class ReplaySource(Source):
 
     def __init__(self, spec: SourceSpec, items: list[ReplayItem] | None = None, video: Path | None = None,
                  description: dict[str, Any] | None = None) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
         self.items = items or []
         self.video = video
         self.description = description
@@ -233,7 +233,7 @@ class ReplaySource(Source):
             out["recorded_from"] = self.description
         return out
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Open the video (if any) and rewind; with ``preload``, decode every image now."""
         if self.video is not None:
             self._cap = cv2.VideoCapture(str(self.video))
@@ -270,10 +270,9 @@ class ReplaySource(Source):
         self._video_index += 1
         return image, i
 
-    def read(self, timeout_s: float | None = None) -> Frame | None:
+    def _read(self, timeout_s: float | None) -> Frame | None:
         """The next frame (paced per ``pace``), or None at the end."""
-        if self._seq is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+        assert self._seq is not None
         if self.video is not None:
             image, i = self._read_video_frame()
             if image is None:
@@ -292,7 +291,7 @@ class ReplaySource(Source):
         seq = item.seq + self._seq.passes * len(self.items)
         return Frame(image, stamp, time.monotonic_ns(), seq, item.camera_id, item.exposure_us, item.gain_db)
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Release the video file and the preloaded frames."""
         if self._cap is not None:
             self._cap.release()
@@ -306,8 +305,8 @@ class StereoReplaySource(StereoSource):
 
     def __init__(self, spec: SourceSpec, pairs: list[tuple[ReplayItem, ReplayItem]],
                  description: dict[str, Any] | None = None) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
         self.pairs = pairs
         self.description = description
         self._seq: _Sequence | None = None
@@ -323,7 +322,7 @@ class StereoReplaySource(StereoSource):
             out["recorded_from"] = self.description
         return out
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Rewind; with ``preload``, decode every image now."""
         if self._images is None:
             self._images = _preload_for(self.spec, [it.file for pair in self.pairs for it in pair],  # type: ignore[misc]
@@ -333,10 +332,9 @@ class StereoReplaySource(StereoSource):
         self._seq = _Sequence(len(self.pairs), period, self.spec.settings.loop)
         self._span_ns = (stamps[-1] - stamps[0] + period) if stamps else 0
 
-    def read(self, timeout_s: float | None = None) -> StereoFrame | None:
+    def _read(self, timeout_s: float | None) -> StereoFrame | None:
         """The next pair (paced per ``pace``), or None at the end."""
-        if self._seq is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+        assert self._seq is not None
         k = self._seq.next_index()
         if k is None:
             return None
@@ -352,7 +350,7 @@ class StereoReplaySource(StereoSource):
                              it.gain_db) for img, it in frames)
         return StereoFrame(left, right)
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Release the position and the preloaded frames."""
         self._seq = None
         self._images = None

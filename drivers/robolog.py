@@ -27,7 +27,7 @@ from edgecal.drivers.replay import DEFAULT_FPS, Pacer
 from edgecal.drivers.ros_images import IMAGE_TYPES, image_from_msg, stamp_ns
 from edgecal.drivers.spec import SourceSettings, SourceSpec, pace_setting, skew_setting
 from edgecal.drivers.stereo import TimestampPairer
-from edgecal.errors import DeviceError, InputError, quote
+from edgecal.errors import InputError, quote
 
 
 @dataclass(frozen=True)
@@ -191,8 +191,8 @@ class LogImageSource(Source):
     """One image topic of a log as a mono Source."""
 
     def __init__(self, spec: SourceSpec, log: MessageLog) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
         self.log = log
         self.topic = str(spec.settings.topic)
         self.camera_id = spec.settings.camera_id or self.topic
@@ -205,16 +205,15 @@ class LogImageSource(Source):
         return {"uri": self.uri, "driver": self.spec.driver, "topic": self.topic,
                 "settings": self.spec.settings.as_dict()}
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Check the topic exists and holds images; start at the first message."""
         check_topics(self.log, (self.topic,))
         self._reader = _Reader(self.log, (self.topic,), self.spec.settings.loop)
         self._seq = 0
 
-    def read(self, timeout_s: float | None = None) -> Frame | None:
+    def _read(self, timeout_s: float | None) -> Frame | None:
         """The next image (paced per ``pace``), None at the end; InputError for an undecodable message."""
-        if self._reader is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+        assert self._reader is not None
         m = self._reader.next()
         if m is None:
             return None
@@ -229,7 +228,7 @@ class LogImageSource(Source):
         frame.recv_ns = time.monotonic_ns()          # delivered now, after the pacing wait
         return frame
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Forget the position (the file is opened per pass by the log)."""
         self._reader = None
 
@@ -238,8 +237,8 @@ class LogStereoSource(StereoSource):
     """Two image topics of a log as a StereoSource, paired by header stamp within ``max_skew_ms``."""
 
     def __init__(self, spec: SourceSpec, log: MessageLog) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
         self.log = log
         self.left_topic = str(spec.settings.left)
         self.right_topic = str(spec.settings.right)
@@ -261,7 +260,7 @@ class LogStereoSource(StereoSource):
         return {"uri": self.uri, "driver": self.spec.driver, "left": self.left_topic, "right": self.right_topic,
                 "settings": self.spec.settings.as_dict()}
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Check both topics exist and hold images; start at the first message."""
         if self.left_topic == self.right_topic:
             raise InputError(f"{self.uri}: left and right are the same topic {self.left_topic}")
@@ -271,10 +270,9 @@ class LogStereoSource(StereoSource):
         self.pairer.right.clear()
         self._seq = {self.left_topic: 0, self.right_topic: 0}
 
-    def read(self, timeout_s: float | None = None) -> StereoFrame | None:
+    def _read(self, timeout_s: float | None) -> StereoFrame | None:
         """The next pair (paced per ``pace``), None at the end; InputError for an undecodable message."""
-        if self._reader is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+        assert self._reader is not None
         while True:
             pair = self.pairer.pop_pair()
             if pair is not None:
@@ -303,7 +301,7 @@ class LogStereoSource(StereoSource):
         pair.left.recv_ns = pair.right.recv_ns = time.monotonic_ns()
         return pair
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Forget the position and any unpaired frames."""
         self._reader = None
         self.pairer.left.clear()

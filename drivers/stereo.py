@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
 from edgecal.drivers.spec import SourceSettings, skew_setting
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceTimeout
 
 
 @dataclass(frozen=True)
@@ -84,12 +84,11 @@ class PairedStereoSource(StereoSource):
 
     def __init__(self, left: Source, right: Source, max_skew_ns: int, timeout_s: float = 2.0,
                  uri: str = "stereo:") -> None:
+        super().__init__(uri)
         self.left = left
         self.right = right
         self.pairer = TimestampPairer(max_skew_ns)
         self.timeout_s = timeout_s
-        self.uri = uri
-        self._open = False
         self.live = left.live and right.live
 
     @property
@@ -102,7 +101,7 @@ class PairedStereoSource(StereoSource):
         return {"uri": self.uri, "max_skew_ns": self.pairer.max_skew_ns,
                 "left": self.left.describe(), "right": self.right.describe()}
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Open both sides (the left is closed again if the right fails)."""
         self.left.open()
         try:
@@ -110,16 +109,13 @@ class PairedStereoSource(StereoSource):
         except BaseException:
             self.left.close()
             raise
-        self._open = True
 
-    def read(self, timeout_s: float | None = None) -> StereoFrame | None:
+    def _read(self, timeout_s: float | None) -> StereoFrame | None:
         """The next pair; None when either side ends; DeviceError when no pair forms within the timeout.
 
         A side that keeps delivering frames that never pair (clocks far apart, a bound too tight) is a
         fault too: it is reported after the timeout, naming the measured skew.
         """
-        if not self._open:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
         timeout = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout
         last_skew: int | None = None
@@ -131,7 +127,7 @@ class PairedStereoSource(StereoSource):
             if remaining <= 0:
                 detail = (f"; the last heads were {last_skew / 1e6:.3f} ms apart, max_skew_ms is "
                           f"{self.pairer.max_skew_ns / 1e6:g}" if last_skew is not None else "")
-                raise DeviceError(f"{self.uri}: no left/right pair within {timeout:g} s{detail}")
+                raise DeviceTimeout(f"{self.uri}: no left/right pair within {timeout:g} s{detail}")
             side = self.pairer.needs()
             if side == "either":
                 side = "left"
@@ -146,9 +142,8 @@ class PairedStereoSource(StereoSource):
             if self.pairer.left and self.pairer.right:
                 last_skew = abs(self.pairer.left[0].stamp_ns - self.pairer.right[0].stamp_ns)
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Close both sides, also if closing one of them fails."""
-        self._open = False
         try:
             self.left.close()
         finally:

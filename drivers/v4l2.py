@@ -29,7 +29,7 @@ import cv2
 from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source
 from edgecal.drivers.spec import CameraSettings, SourceSpec, buffers_setting
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceAbsent, DeviceError, DeviceLost, DeviceTimeout
 
 # FOURCCs OpenCV hands through undecoded when CAP_PROP_CONVERT_RGB is off (grey sensors).
 _RAW_FORMATS = ("GREY", "Y16")
@@ -49,13 +49,13 @@ def check_device_node(path: str) -> None:
     """DeviceError unless ``path`` is a character device this user may open read/write."""
     p = Path(path)
     if not p.exists():
-        raise DeviceError(f"v4l2:{path}: no such device (is the camera plugged in? `edgecal sources` lists the "
+        raise DeviceAbsent(f"v4l2:{path}: no such device (is the camera plugged in? `edgecal sources` lists the "
                           "V4L2 devices)")
     mode = p.stat().st_mode
     if not stat.S_ISCHR(mode):
-        raise DeviceError(f"v4l2:{path}: not a device node (expected a character device such as /dev/video0)")
+        raise DeviceAbsent(f"v4l2:{path}: not a device node (expected a character device such as /dev/video0)")
     if not os.access(path, os.R_OK | os.W_OK):
-        raise DeviceError(f"v4l2:{path}: no permission to open the device (add the user to the "
+        raise DeviceAbsent(f"v4l2:{path}: no permission to open the device (add the user to the "
                           f"'video' group: sudo usermod -aG video $USER, then log in again)")
 
 
@@ -76,18 +76,18 @@ def query_capabilities(path: str) -> tuple[str, bool]:
     try:
         fd = os.open(path, os.O_RDWR | os.O_NONBLOCK)
     except PermissionError:
-        raise DeviceError(f"v4l2:{path}: no permission to open the device (add the user to the 'video' group: "
+        raise DeviceAbsent(f"v4l2:{path}: no permission to open the device (add the user to the 'video' group: "
                           "sudo usermod -aG video $USER, then log in again)") from None
     except OSError as exc:
-        raise DeviceError(f"v4l2:{path}: cannot open ({exc.strerror})") from None
+        raise DeviceAbsent(f"v4l2:{path}: cannot open ({exc.strerror})") from None
     try:
         buf = bytearray(_CAPABILITY.size)
         try:
             fcntl.ioctl(fd, VIDIOC_QUERYCAP, buf)
         except OSError as exc:
             if exc.errno in (errno.ENOTTY, errno.EINVAL):
-                raise DeviceError(f"v4l2:{path}: not a V4L2 device (it does not answer VIDIOC_QUERYCAP)") from None
-            raise DeviceError(f"v4l2:{path}: VIDIOC_QUERYCAP failed ({exc.strerror})") from None
+                raise DeviceAbsent(f"v4l2:{path}: not a V4L2 device (it does not answer VIDIOC_QUERYCAP)") from None
+            raise DeviceAbsent(f"v4l2:{path}: VIDIOC_QUERYCAP failed ({exc.strerror})") from None
     finally:
         os.close(fd)
     _, card, _, _, caps, device_caps = _CAPABILITY.unpack(bytes(buf))
@@ -101,7 +101,7 @@ def device_index(path: str) -> int:
     real = os.path.realpath(path)
     m = re.fullmatch(r"/dev/video(\d+)", real)
     if not m:
-        raise DeviceError(f"v4l2:{path}: not a V4L2 capture device (expected /dev/videoN or a link to one, "
+        raise DeviceAbsent(f"v4l2:{path}: not a V4L2 capture device (expected /dev/videoN or a link to one, "
                           f"got {real})")
     return int(m.group(1))
 
@@ -131,9 +131,8 @@ class V4L2Source(Source):
     live = True
 
     def __init__(self, spec: SourceSpec) -> None:
+        super().__init__(spec.uri, spec.settings)
         self.spec = spec
-        self.uri = spec.uri
-        self.settings = spec.settings
         self._cap: cv2.VideoCapture | None = None
         self._seq = 0
         self._last_stamp = 0
@@ -150,7 +149,7 @@ class V4L2Source(Source):
                        pixel_format="".join(chr((fourcc >> (8 * i)) & 0xFF) for i in range(4)))
         return out
 
-    def open(self) -> None:
+    def _open(self) -> None:
         """Open the device node, negotiate the format and apply exposure/gain."""
         if self._cap is not None:
             return
@@ -158,7 +157,7 @@ class V4L2Source(Source):
         check_device_node(path)
         card, capture = query_capabilities(path)
         if not capture:
-            raise DeviceError(f"{self.uri}: {card or 'the device'} has no video capture on this node (UVC cameras "
+            raise DeviceAbsent(f"{self.uri}: {card or 'the device'} has no video capture on this node (UVC cameras "
                               "have a second, metadata-only node: try the other /dev/videoN)")
         s = self.settings
         params = [cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(s.timeout_s * 1000)]
@@ -166,7 +165,7 @@ class V4L2Source(Source):
         cap = cv2.VideoCapture(device_index(path), cv2.CAP_V4L2, params)
         if not cap.isOpened():
             cap.release()
-            raise DeviceError(f"{self.uri}: not a V4L2 capture device, or busy (another program has it open?)")
+            raise DeviceAbsent(f"{self.uri}: not a V4L2 capture device, or busy (another program has it open?)")
         self._cap = cap
         try:
             if s.pixel_format:
@@ -200,18 +199,18 @@ class V4L2Source(Source):
             raise DeviceError(f"{self.uri}: the device does not offer {s.width}x{s.height} "
                               f"(it chose {w}x{h}; `v4l2-ctl --list-formats-ext -d {self.spec.target}` lists sizes)")
 
-    def read(self, timeout_s: float | None = None) -> Frame:
-        """The next frame with its kernel timestamp; DeviceError after the timeout or on unplug."""
-        if self._cap is None:
-            raise DeviceError(f"{self.uri}: read() before open() (use the source as a context manager)")
+    def _read(self, timeout_s: float | None) -> Frame:
+        """The next frame with its kernel timestamp; DeviceTimeout after the timeout, DeviceLost on unplug."""
+        assert self._cap is not None
         timeout = self.settings.timeout_s if timeout_s is None else timeout_s
         self._cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(timeout * 1000))
         t0 = time.monotonic()
         ok = self._cap.grab()
         if not ok:
             waited = time.monotonic() - t0
-            why = "no frame" if waited >= 0.9 * timeout else "the device stopped (unplugged?)"
-            raise DeviceError(f"{self.uri}: {why} within {timeout:g} s")
+            if waited >= 0.9 * timeout:
+                raise DeviceTimeout(f"{self.uri}: no frame within {timeout:g} s")
+            raise DeviceLost(f"{self.uri}: the device stopped (unplugged?) within {timeout:g} s")
         recv = time.monotonic_ns()
         ok, image = self._cap.retrieve()
         if not ok or image is None:
@@ -221,7 +220,7 @@ class V4L2Source(Source):
         self._seq += 1
         return Frame(image, stamp, recv, self._seq, self.spec.camera_id, self.exposure_us, None)
 
-    def close(self) -> None:
+    def _close(self) -> None:
         """Release the device (safe to call twice)."""
         cap, self._cap = self._cap, None
         if cap is not None:

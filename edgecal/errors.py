@@ -4,6 +4,12 @@ Every error a user can cause (a missing file, an unreadable image, a wrong confi
 that is absent or unplugs) is raised as an :class:`EdgecalError` whose message names the thing and
 says what to do. The CLI prints ``edgecal: error: <message>`` and exits with ``exit_code``; it never
 shows a traceback for these.
+
+A device's errors are split by what the caller does next: :class:`DeviceAbsent` (it cannot be opened:
+retry later), :class:`DeviceTimeout` (open, but no frame in time: wait a little longer) and
+:class:`DeviceLost` (it was there and is gone: close and reopen). ``except DeviceError`` catches all
+three. Misusing a Source in code (``read()`` before ``open()``) is a RuntimeError: a bug, not an
+error of the user's.
 """
 
 from __future__ import annotations
@@ -26,7 +32,25 @@ class ConfigError(EdgecalError):
 
 
 class DeviceError(EdgecalError):
-    """A camera is absent, cannot be opened, stops sending or unplugs."""
+    """A camera is absent, cannot be opened, stops sending or unplugs (or refuses a setting)."""
+
+    exit_code = 3
+
+
+class DeviceAbsent(DeviceError):
+    """A camera (or the library its driver needs) is not there, or cannot be opened now (busy, no permission)."""
+
+
+class DeviceTimeout(DeviceError):
+    """An open camera delivered no frame within the read timeout (it may only be slow, or wait for a trigger)."""
+
+
+class DeviceLost(DeviceError):
+    """An open camera is gone: unplugged, powered off, its device stopped, or its capture thread died."""
+
+
+class PublishError(EdgecalError):
+    """An output cannot start: the pose stream's socket cannot be bound, the Foxglove port is taken."""
 
     exit_code = 3
 

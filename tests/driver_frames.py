@@ -38,10 +38,10 @@ class ListSource(Source):
         self.opened = False
         self.closed = False
 
-    def open(self) -> None:
+    def _open(self) -> None:
         self.opened = True
 
-    def read(self, timeout_s: float | None = None):
+    def _read(self, timeout_s: float | None):
         if self.i >= len(self.frames):
             return None
         if self.period_s:
@@ -50,7 +50,7 @@ class ListSource(Source):
         self.i += 1
         return f
 
-    def close(self) -> None:
+    def _close(self) -> None:
         self.closed = True
 
 

@@ -1,7 +1,7 @@
 """V4L2, IEEE-1394 and DepthAI up to the device boundary: no such camera can exist on a test machine.
 
 Each test runs the real driver code (the OpenCV V4L2 backend, libdc1394 through ctypes, depthai) and
-checks that an absent device is a clear DeviceError, quickly, and that close() is safe afterwards.
+checks that an absent device is a clear DeviceAbsent (a DeviceError), quickly, and that close() is safe afterwards.
 """
 
 from __future__ import annotations
@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 from edgecal.drivers import open_source
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceAbsent
 
 
 def _expect_device_error(uri: str, pattern: str, limit_s: float = 3.0) -> None:
     src = open_source(uri)
     t0 = time.monotonic()
-    with pytest.raises(DeviceError, match=pattern):
+    with pytest.raises(DeviceAbsent, match=pattern):
         with src:
             pass
     assert time.monotonic() - t0 < limit_s

@@ -9,7 +9,7 @@ import pytest
 
 from edgecal.drivers import LatestFrameSource, PairedStereoSource, TimestampPairer, open_source
 from edgecal.drivers.base import Source
-from edgecal.errors import DeviceError
+from edgecal.errors import DeviceLost, DeviceTimeout
 
 from .driver_frames import ListSource, frames_at
 
@@ -69,7 +69,7 @@ def test_paired_stereo_gives_up_with_a_clear_error_when_clocks_never_match() -> 
     with PairedStereoSource(left, right, max_skew_ns=1 * MS, timeout_s=0.2) as stereo:
         t0 = time.monotonic()
         # The heads alternate between 3 ms and 7 ms apart as the older one is dropped each time.
-        with pytest.raises(DeviceError, match=r"no left/right pair within 0.2 s; the last heads were (3|7)\.000 ms "
+        with pytest.raises(DeviceTimeout, match=r"no left/right pair within 0.2 s; the last heads were (3|7)\.000 ms "
                                               r"apart, max_skew_ms is 1"):
             stereo.read()
         assert time.monotonic() - t0 < 1.0
@@ -113,17 +113,17 @@ class _Stalls(Source):
         self.n = 0
         self.closed = False
 
-    def open(self) -> None:
+    def _open(self) -> None:
         pass
 
-    def read(self, timeout_s=None):
+    def _read(self, timeout_s):
         self.n += 1
         if self.n > 3:
             time.sleep(timeout_s)
-            raise DeviceError(f"stall: no frame within {timeout_s:g} s")
+            raise DeviceTimeout(f"stall: no frame within {timeout_s:g} s")
         return frames_at([self.n * MS])[0]
 
-    def close(self) -> None:
+    def _close(self) -> None:
         self.closed = True
 
 
@@ -132,11 +132,57 @@ def test_latest_frame_reports_a_stalled_camera_after_the_timeout() -> None:
     with LatestFrameSource(inner, timeout_s=0.15) as latest:
         latest.read(0.5)
         t0 = time.monotonic()
-        with pytest.raises(DeviceError, match="no frame within 0.15 s"):
+        with pytest.raises(DeviceTimeout, match="no frame within 0.15 s"):
             while True:
                 latest.read(1.0)
         assert time.monotonic() - t0 < 0.6
     assert inner.closed
+
+
+class _Fails(ListSource):
+    """Delivers its frames, then fails on reading with ``error`` (an unplug, or a driver's own bug)."""
+
+    def __init__(self, error: Exception) -> None:
+        super().__init__(frames_at([MS, 2 * MS]), uri="fails")
+        self.error = error
+
+    def _read(self, timeout_s):
+        if self.i >= len(self.frames):
+            raise self.error
+        return super()._read(timeout_s)
+
+
+def test_latest_frame_tells_a_lost_camera_and_a_dead_capture_thread_apart_from_a_timeout() -> None:
+    # The kind of the reader thread's error reaches the caller on every read after it: a lost camera
+    # stays DeviceLost (the loop reopens it at once), a bug that killed the thread is a DeviceLost too.
+    for error, kind, text in ((DeviceLost("fails: lost contact with the camera"), DeviceLost, "^fails: lost contact"),
+                              (ValueError("bad buffer"), DeviceLost, "^fails: capture thread failed: bad buffer")):
+        with LatestFrameSource(_Fails(error), timeout_s=0.2) as latest:
+            got = []
+            with pytest.raises(kind, match=text):
+                for _ in range(10):
+                    got.append(latest.read(1.0))
+            assert 1 <= len(got) <= 2           # the first frame may have been overwritten by the second
+            with pytest.raises(kind, match=text):
+                latest.read(1.0)
+
+
+def test_every_source_refuses_a_read_before_open_as_a_programming_error(tmp_path) -> None:
+    # One guard in the Source base: RuntimeError (a bug of the caller), not a DeviceError.
+    import cv2
+    for side in ("left", "right"):
+        (tmp_path / side).mkdir()
+        cv2.imwrite(str(tmp_path / side / "000.png"), np.zeros((8, 8), np.uint8))
+    sources = [open_source(f"replay:{tmp_path / 'left'}"), open_source(f"replay:{tmp_path}"),
+               open_source(f"replay:{tmp_path / 'left'}?latest_only=true"), ListSource([]),
+               PairedStereoSource(ListSource([]), ListSource([]), MS)]
+    for src in sources:
+        with pytest.raises(RuntimeError, match=r"read\(\) before open\(\) \(use the source as a context manager\)"):
+            src.read()
+        with src:
+            src.read()
+        with pytest.raises(RuntimeError, match="before open"):     # closed again
+            src.read()
 
 
 def test_latest_only_setting_wraps_the_source(tmp_path) -> None:

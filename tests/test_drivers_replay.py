@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from edgecal.drivers import Frame, StereoFrame, StereoSource, open_source, record
-from edgecal.errors import DeviceError, InputError
+from edgecal.errors import DeviceError, DeviceLost, InputError
 
 from .driver_frames import ListSource, render_frame
 
@@ -139,7 +139,7 @@ def test_replay_errors_name_the_path(tmp_path: Path) -> None:
     (tmp_path / "junk" / "a.png").write_bytes(b"not a png")
     with open_source(f"replay:{tmp_path / 'junk'}") as src, pytest.raises(InputError, match="a.png: not a readable"):
         src.read()
-    with pytest.raises(DeviceError, match="before open"):
+    with pytest.raises(RuntimeError, match=r"read\(\) before open\(\)"):
         open_source(f"replay:{tmp_path / 'junk'}").read()
 
 
@@ -165,10 +165,10 @@ def test_a_camera_fault_during_recording_keeps_what_was_recorded(tmp_path: Path)
     frames = _camera_frames(3, (8, 8), np.uint8)
 
     class Unplugged(ListSource):
-        def read(self, timeout_s=None):
+        def _read(self, timeout_s):
             if self.i >= len(self.frames):
-                raise DeviceError("cam0: lost contact with the camera")
-            return super().read(timeout_s)
+                raise DeviceLost("cam0: lost contact with the camera")
+            return super()._read(timeout_s)
 
     with Unplugged(frames) as src, pytest.raises(DeviceError, match="lost contact"):
         record(src, tmp_path / "rec", frames=10)

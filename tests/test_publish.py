@@ -114,11 +114,11 @@ def test_publisher_never_blocks_on_a_subscriber_that_stops_reading() -> None:
     ctx.term()
 
 
-def test_bind_to_a_taken_port_is_a_device_error() -> None:
+def test_bind_to_a_taken_port_is_a_publish_error() -> None:
     endpoint = free_endpoint()
     with PosePublisher(endpoint):
-        from edgecal.errors import DeviceError
-        with pytest.raises(DeviceError, match="cannot bind"):
+        from edgecal.errors import PublishError
+        with pytest.raises(PublishError, match="cannot bind"):
             PosePublisher(endpoint)
 
 

@@ -142,14 +142,14 @@ def _connectable(port: int) -> bool:
 
 
 def test_foxglove_port_in_use_is_one_clear_error(sequence: tuple[Path, dict], tmp_path: Path) -> None:
-    from edgecal.errors import DeviceError
+    from edgecal.errors import PublishError
     from edgecal.publish.foxglove_sink import FoxgloveSink
     from edgecal.publish.sink_settings import FoxgloveSettings, OutputSettings
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        with pytest.raises(DeviceError, match=f"cannot serve Foxglove on 127.0.0.1:{port}"):
+        with pytest.raises(PublishError, match=f"cannot serve Foxglove on 127.0.0.1:{port}"):
             FoxgloveSink(FoxgloveSettings(port=port), OutputSettings())
 
 

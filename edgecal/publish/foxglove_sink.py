@@ -51,7 +51,7 @@ from foxglove.messages import (
     Vector3,
 )
 
-from edgecal.errors import DeviceError
+from edgecal.errors import PublishError
 from edgecal.publish.sink_settings import FoxgloveSettings, OutputSettings
 from edgecal.publish.sinks import FrameOutput, Sink, ros_stamp_ns
 from edgecal.ros_messages import has_value
@@ -118,7 +118,7 @@ class FoxgloveSink(Sink):
             server = foxglove.start_server(name="edgecal", host=settings.host, port=settings.port,
                                            context=self._ctx, message_backlog_size=BACKLOG)
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own (Rust) error types for a bind failure
-            raise DeviceError(f"cannot serve Foxglove on {settings.host}:{settings.port} ({exc}); "
+            raise PublishError(f"cannot serve Foxglove on {settings.host}:{settings.port} ({exc}); "
                               "is another edgecal running? (publish.foxglove.port)") from None
         self.server: foxglove.WebSocketServer | None = server
         self.port = int(server.port)

@@ -18,7 +18,7 @@ from typing import Any
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
 
-from edgecal.errors import ConfigError, DeviceError, quote
+from edgecal.errors import ConfigError, PublishError, quote
 from edgecal.publish.curve import AllowedKeys, ServerKeys
 from edgecal.publish.messages import POSE_TOPIC, STATUS_TOPIC, encode
 from edgecal.publish.sinks import FrameOutput, Sink
@@ -117,7 +117,7 @@ class PosePublisher(Sink):
             self._sock.bind(endpoint)
         except zmq.ZMQError as exc:
             self.close()
-            raise DeviceError(f"cannot bind the pose stream to {endpoint} ({exc}); is another edgecal running?") \
+            raise PublishError(f"cannot bind the pose stream to {endpoint} ({exc}); is another edgecal running?") \
                 from None
 
     def _send(self, topic: bytes, message: dict[str, Any]) -> bool:

@@ -24,7 +24,7 @@ from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
 from edgecal.drivers.base import Source, StereoFrame
 from edgecal.drivers.spec import SourceSpec
-from edgecal.errors import DeviceError, EdgecalError, InputError, clip, exception_summary
+from edgecal.errors import DeviceError, DeviceLost, EdgecalError, InputError, clip, exception_summary
 from edgecal.pose import Pose, estimate_pose
 from edgecal.publish import PosePublisher, pose_message, status_message
 from edgecal.publish.sinks import FrameOutput, Sink, build_sinks, close_all, fan_out
@@ -362,7 +362,9 @@ class LiveLoop:
                 self._rate_limited_error(f"error while reading {self.config.source.uri}: {exception_summary(exc)}",
                                          exc_info=True)
             silent_s = (time.monotonic_ns() - self._last_frame_ns) / 1e9
-            if silent_s > self.config.loop.camera_lost_after_s:
+            # A camera that is gone (unplugged, its capture thread dead) is reopened at once; one that is
+            # only silent (a timeout: slow, or waiting for a trigger) gets camera_lost_after_s first.
+            if isinstance(exc, DeviceLost) or silent_s > self.config.loop.camera_lost_after_s:
                 self._camera_lost(str(exc) if isinstance(exc, DeviceError) else exception_summary(exc))
             elif time.monotonic_ns() - t_read < 10**6:
                 time.sleep(0.02)                 # the error came at once (a dead capture thread): don't spin
