@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+import zmq
 
 from edgecal.cli import main
 from edgecal.errors import ConfigError
@@ -168,6 +169,91 @@ def test_idle_connections_cannot_starve_a_subscriber(robot: Path, tmp_path: Path
             c.close()
         if sub is not None:
             sub.close()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, log.read_text()[-2000:]
+
+
+ZMTP_FLOOD = 1_100
+
+
+def test_subscribers_that_complete_the_handshake_cannot_take_the_descriptors(robot: Path, tmp_path: Path) -> None:
+    """1,100 real ZeroMQ subscribers (each finishes the handshake at once and stays connected) against a daemon
+    limited to 1024 file descriptors: it holds publish.max_connections of them and shuts the rest at accept,
+    so its descriptors stay bounded, the subscriber connected before the flood keeps receiving poses, and a
+    reload - which must open files - still works while the flood goes on."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    need = 2 * ZMTP_FLOOD + 300          # a ZeroMQ socket here holds its connection and a mailbox descriptor
+    if hard < need:
+        pytest.skip(f"the test needs {need} file descriptors (hard limit {hard})")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, need), hard))
+    endpoint = free_endpoint()
+    cfg = write_config(tmp_path / "live.yaml", robot, endpoint, source_extra={"loop": True})
+    doc = yaml.safe_load(cfg.read_text())
+    doc["publish"]["max_connections"] = 32
+    cfg.write_text(yaml.safe_dump(doc))
+    log = tmp_path / "run.log"
+
+    def limit_fds() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
+
+    proc = subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(cfg)],
+                            env={**os.environ, "NUMBA_NUM_THREADS": "1"}, stdout=log.open("wb"),
+                            stderr=subprocess.STDOUT, preexec_fn=limit_fds)  # noqa: PLW1509
+    ctx = zmq.Context()
+    ctx.MAX_SOCKETS = ZMTP_FLOOD + 100
+    flood: list[zmq.Socket] = []
+    first = Subscriber(endpoint)
+    try:
+        assert first.wait_for(lambda: len(first.of("pose")) >= 1, 90), log.read_text()
+        for i in range(ZMTP_FLOOD):
+            s = ctx.socket(zmq.SUB)
+            s.setsockopt(zmq.LINGER, 0)
+            s.setsockopt(zmq.SUBSCRIBE, b"")
+            s.connect(endpoint)
+            flood.append(s)
+            if i % 100 == 99:
+                time.sleep(0.1)
+
+        def fds() -> int:
+            return len(os.listdir(f"/proc/{proc.pid}/fd"))
+
+        time.sleep(3.0)                       # every flood socket has connected (and been refused) by now
+        held = []
+        for _ in range(5):                    # while the refused ones keep reconnecting
+            held.append(fds())
+            time.sleep(0.2)
+        # 32 held, ~20 of the daemon's own, and the refused ones between accept and ZeroMQ closing them.
+        assert max(held) < 300, f"{held} descriptors open with {ZMTP_FLOOD} subscribers connecting"
+        n = len(first.of("pose"))
+        assert first.wait_for(lambda: len(first.of("pose")) >= n + 3, 20), log.read_text()[-2000:]
+        # A reload opens the config, the rig and the target files: it needs descriptors the flood did not get.
+        doc["pose"] = {"max_rms_px": 0.9}
+        cfg.write_text(yaml.safe_dump(doc))
+        n_status = len(first.of("status"))
+        proc.send_signal(signal.SIGHUP)
+        assert wait_until(lambda: b"reloaded" in log.read_bytes(), 20), log.read_text()[-2000:]
+        assert first.wait_for(lambda: len(first.of("status")) > n_status + 1, 10)
+        assert first.of("status")[-1]["reload_failures"] == 0 and first.of("status")[-1]["refused_connections"] > 0
+        assert b"refusing pose-stream connections" in log.read_bytes()
+        assert proc.poll() is None
+        for s in flood:
+            s.close()
+        flood.clear()
+        late = Subscriber(endpoint)           # the flood has gone: a newcomer gets in again
+        try:
+            assert late.wait_for(lambda: len(late.of("pose")) >= 2, 20), log.read_text()[-2000:]
+        finally:
+            late.close()
+    finally:
+        for s in flood:
+            s.close()
+        ctx.term()
+        first.close()
         proc.send_signal(signal.SIGTERM)
         try:
             proc.wait(10)

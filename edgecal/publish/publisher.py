@@ -7,16 +7,27 @@ cannot count those losses; ``send_failures`` counts only sends the socket itself
 
 With CURVE keys (required beyond the loopback interface; see edgecal.publish.curve) the stream is
 encrypted and only subscribers whose public key the publisher knows are let in.
+
+Connections are bounded twice, so that a flood of them cannot take the daemon's file descriptors (which
+it needs for the camera, the config and its logs): one that has not finished ZeroMQ's handshake within
+``handshake_timeout_s`` is dropped by ZeroMQ (idle TCP connections, a port scan), and at most
+``max_connections`` are held at once (:class:`ConnectionLimit`; clients that complete the handshake at
+once and stay, e.g. a loop opening SUB sockets).
 """
 
 from __future__ import annotations
 
 import ipaddress
 import logging
+import os
+import socket
+import threading
+import time
 from typing import Any
 
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils.monitor import recv_monitor_message
 
 from edgecal.errors import ConfigError, PublishError, quote
 from edgecal.publish.curve import AllowedKeys, ServerKeys
@@ -27,6 +38,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp://127.0.0.1:5560"
 HANDSHAKE_TIMEOUT_S = 2.0        # publish.handshake_timeout_s: see PosePublisher
+# publish.max_connections: subscriber connections held at once (a robot has a handful of subscribers; with
+# LimitNOFILE=4096, or even the default 1024, this leaves the daemon its descriptors whatever connects).
+MAX_CONNECTIONS = 64
+LIMIT_LOG_PERIOD_S = 10.0        # at most one "refusing connections" warning per this
 
 
 def _tcp_host_port(endpoint: str) -> tuple[str, str]:
@@ -83,6 +98,98 @@ def check_endpoint(endpoint: str, allow_remote: bool) -> str:
     return endpoint
 
 
+class ConnectionLimit:
+    """Holds a bound socket's accepted connections to ``limit``: beyond it, a new one is shut down at once.
+
+    ZeroMQ has no such option. Its socket monitor reports each accepted connection with its descriptor
+    (and each disconnection); a thread of ours counts them and shuts down (``shutdown(2)`` on a duplicate
+    of the descriptor) those accepted while ``limit`` are held. ZeroMQ then sees the connection end and
+    releases it as it would any closed connection; its descriptor is never closed under ZeroMQ. Before
+    acting, the descriptor is checked to be a TCP/IPC connection on this socket's own address (a
+    descriptor number the process has since reused elsewhere is left alone).
+    """
+
+    EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED
+
+    def __init__(self, sock: zmq.Socket, limit: int, local: str) -> None:
+        self.limit = limit
+        self.refused = 0              # connections shut down because ``limit`` were held
+        self._local = local           # this socket's address as getsockname() gives it (tcp: port; ipc: path)
+        self._held: set[int] = set()
+        self._sock = sock
+        self._monitor = sock.get_monitor_socket(self.EVENTS)
+        self._last_log = 0.0
+        self._thread = threading.Thread(target=self._run, name="publish-connections", daemon=True)
+        self._thread.start()
+
+    @property
+    def held(self) -> int:
+        """Connections accepted and not yet ended."""
+        return len(self._held)
+
+    def _run(self) -> None:
+        monitor = self._monitor
+        try:
+            while True:
+                event = recv_monitor_message(monitor)
+                kind, fd = event["event"], int(event["value"])
+                if kind == zmq.EVENT_MONITOR_STOPPED:
+                    return
+                if kind == zmq.EVENT_DISCONNECTED:
+                    self._held.discard(fd)
+                elif kind == zmq.EVENT_ACCEPTED:
+                    if len(self._held) < self.limit:
+                        self._held.add(fd)
+                    elif self._shut(fd):
+                        self._refused()
+        except zmq.ZMQError:          # the context is terminating: nothing left to watch
+            return
+        finally:
+            monitor.close(linger=0)
+
+    def _shut(self, fd: int) -> bool:
+        """Shut down the connection on ``fd`` if it is one of this socket's; whether it was."""
+        try:
+            dup = socket.socket(fileno=os.dup(fd))
+        except OSError:               # closed meanwhile (the peer left at once), or not a socket
+            return False
+        try:
+            name = dup.getsockname()
+            mine = (name[1] if isinstance(name, tuple) else name) == self._local
+            if mine:
+                dup.shutdown(socket.SHUT_RDWR)
+            return mine
+        except OSError:
+            return False
+        finally:
+            dup.close()               # only the duplicate: the descriptor stays ZeroMQ's
+
+    def _refused(self) -> None:
+        self.refused += 1
+        now = time.monotonic()
+        if now - self._last_log >= LIMIT_LOG_PERIOD_S:
+            self._last_log = now
+            log.warning("refusing pose-stream connections: %d held (publish.max_connections); %d refused so far",
+                        len(self._held), self.refused)
+
+    def close(self) -> None:
+        """Stop watching (the monitor's stop event ends the thread); call before closing the socket."""
+        try:
+            self._sock.disable_monitor()
+        except zmq.ZMQError:
+            pass
+        self._thread.join(1.0)
+
+
+def _local_address(sock: zmq.Socket) -> object:
+    """What getsockname() of an accepted connection gives for the bound endpoint: the port (tcp), the path (ipc)."""
+    endpoint = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+    scheme, _, rest = endpoint.partition("://")
+    if scheme == "tcp":
+        return int(rest.rpartition(":")[2])
+    return rest
+
+
 class PosePublisher(Sink):
     """A bound PUB socket; ``send_pose``/``send_status`` return False when the socket refused the message.
 
@@ -92,13 +199,15 @@ class PosePublisher(Sink):
     name = "zeromq"
 
     def __init__(self, endpoint: str = DEFAULT_ENDPOINT, hwm: int = 4, context: zmq.Context | None = None, *,
-                 curve: ServerKeys | None = None, handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S) -> None:
+                 curve: ServerKeys | None = None, handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S,
+                 max_connections: int = MAX_CONNECTIONS) -> None:
         self.endpoint = endpoint
         self.sent = 0
         self.send_failures = 0
         self._own_context = context is None
         self._ctx = context or zmq.Context()
         self._auth: ThreadAuthenticator | None = None
+        self._limit: ConnectionLimit | None = None
         self._sock = self._ctx.socket(zmq.PUB)
         self._sock.setsockopt(zmq.SNDHWM, hwm)
         self._sock.setsockopt(zmq.LINGER, 0)       # close at once: queued messages are stale anyway
@@ -119,6 +228,13 @@ class PosePublisher(Sink):
             self.close()
             raise PublishError(f"cannot bind the pose stream to {endpoint} ({exc}); is another edgecal running?") \
                 from None
+        if not endpoint.startswith("inproc://"):      # inproc peers hold no descriptors
+            self._limit = ConnectionLimit(self._sock, max_connections, _local_address(self._sock))
+
+    @property
+    def refused_connections(self) -> int:
+        """Connections shut down at accept because ``max_connections`` were held."""
+        return self._limit.refused if self._limit is not None else 0
 
     def _send(self, topic: bytes, message: dict[str, Any]) -> bool:
         try:
@@ -150,6 +266,9 @@ class PosePublisher(Sink):
 
         ``linger_s``: how long messages still queued may take to leave (0: dropped at once).
         """
+        if self._limit is not None:
+            self._limit.close()
+            self._limit = None
         if not self._sock.closed:
             self._sock.close(linger=int(linger_s * 1000))
         if self._auth is not None:

@@ -13,6 +13,7 @@
               min_corners: 8, max_rms_px: 1.0, max_position_std_mm: 5.0, max_rotation_std_deg: 1.0}
     tracking: {enabled: true, max_gap_s: 0.5, min_confirmed_fraction: 0.6}
     publish: {endpoint: "tcp://127.0.0.1:5560", allow_remote: false, hwm: 4, handshake_timeout_s: 2.0,
+              max_connections: 64,
               curve: {server_key: keys/server.key_secret, client_keys: keys/clients}}   # curve: beyond loopback
     loop:    {status_period_s: 1.0, camera_lost_after_s: 2.0, reconnect_min_s: 0.5, reconnect_max_s: 10.0,
               stop_at_end: true}
@@ -34,7 +35,13 @@ from edgecal.drivers.spec import SourceSpec, spec_from_config
 from edgecal.errors import ConfigError, EdgecalError, InputError, exception_summary, quote
 from edgecal.pose.types import PoseSettings
 from edgecal.publish.curve import ServerKeys, load_server_keys, read_key_file
-from edgecal.publish.publisher import DEFAULT_ENDPOINT, HANDSHAKE_TIMEOUT_S, endpoint_problem, is_local_endpoint
+from edgecal.publish.publisher import (
+    DEFAULT_ENDPOINT,
+    HANDSHAKE_TIMEOUT_S,
+    MAX_CONNECTIONS,
+    endpoint_problem,
+    is_local_endpoint,
+)
 from edgecal.publish.sink_settings import OUTPUT_FIELDS, OutputSettings, read_outputs
 from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
@@ -96,6 +103,9 @@ class PublishSettings:
     # required beyond loopback; optional (and then enforced) on it
     curve: ServerKeys | None = setting(None, doc="CURVE keys: {server_key, client_keys} (`edgecal keys`)",
                                        read=_read_curve)
+    max_connections: int = setting(MAX_CONNECTIONS, doc="connections held at once; one accepted beyond is shut "
+                                                        "down at once (a flood cannot take the descriptors)",
+                                   minimum=1, maximum=10_000)
 
     def config_problem(self) -> tuple[str, str] | None:
         """An endpoint that cannot be bound, or one beyond loopback without keys."""

@@ -509,6 +509,8 @@ class LiveLoop:
         with self._io:
             if self._publisher is None and not self._aborted and self.state != "stopping":
                 self._rebind()
+            if self._publisher is not None:     # a flood of subscribers shows here (publish.max_connections)
+                figures["refused_connections"] = self._publisher.refused_connections
             fan_out(self._all_sinks(), "status", status_message(self.state, figures, now, self._last_message))
         self.notifier.watchdog()
         self.notifier.status(f"{self.state}: {figures['fps']} fps, p99 {lat['p99']} ms")
@@ -615,7 +617,7 @@ class LiveLoop:
 def open_publisher(settings: PublishSettings) -> PosePublisher:
     """The pose stream's socket, bound as ``settings`` say."""
     return PosePublisher(settings.endpoint, settings.hwm, curve=settings.curve,
-                         handshake_timeout_s=settings.handshake_timeout_s)
+                         handshake_timeout_s=settings.handshake_timeout_s, max_connections=settings.max_connections)
 
 
 def run_live(config_path: str, notifier: SystemdNotifier | None = None) -> int:
