@@ -188,3 +188,31 @@ def test_listen_survives_messages_it_does_not_expect(capsys: pytest.CaptureFixtu
     assert any(line.startswith("unrecognised 'pose' message") for line in lines)
     assert "skipped a message that is not [topic, JSON object]" in err
     assert max(len(line) for line in (out + err).splitlines()) < 300
+
+
+def test_connections_beyond_max_connections_are_shut_and_the_watcher_ends_with_the_publisher() -> None:
+    endpoint = free_endpoint()
+    ctx = zmq.Context()
+    subs = []
+    with PosePublisher(endpoint, max_connections=2) as pub:
+        assert any(t.name == "publish-connections" for t in threading.enumerate())
+        for _ in range(5):
+            s = ctx.socket(zmq.SUB)
+            s.setsockopt(zmq.LINGER, 0)
+            s.setsockopt(zmq.SUBSCRIBE, b"")
+            s.connect(endpoint)
+            subs.append(s)
+        deadline = time.monotonic() + 10
+        while pub.refused_connections < 3 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.refused_connections >= 3
+        time.sleep(0.5)                        # the two held ones have subscribed by now
+        for _ in range(20):
+            pub.send_status({"n": 1})
+        receiving = sum(1 for s in subs if s.poll(500))
+        assert receiving == 2
+    # close() stops the thread that watched the connections (it ends on ZeroMQ's MONITOR_STOPPED event)
+    assert not any(t.name == "publish-connections" and t.is_alive() for t in threading.enumerate())
+    for s in subs:
+        s.close()
+    ctx.term()

@@ -109,7 +109,8 @@ class ConnectionLimit:
     descriptor number the process has since reused elsewhere is left alone).
     """
 
-    EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED
+    # MONITOR_STOPPED too: ZeroMQ sends it (and so ends the watching thread) only to a monitor that asked for it.
+    EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_MONITOR_STOPPED
 
     def __init__(self, sock: zmq.Socket, limit: int, local: str) -> None:
         self.limit = limit
