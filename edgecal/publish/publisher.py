@@ -112,7 +112,7 @@ class ConnectionLimit:
     # MONITOR_STOPPED too: ZeroMQ sends it (and so ends the watching thread) only to a monitor that asked for it.
     EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_MONITOR_STOPPED
 
-    def __init__(self, sock: zmq.Socket, limit: int, local: str) -> None:
+    def __init__(self, sock: zmq.Socket, limit: int, local: int | str) -> None:
         self.limit = limit
         self.refused = 0              # connections shut down because ``limit`` were held
         self._local = local           # this socket's address as getsockname() gives it (tcp: port; ipc: path)
@@ -182,7 +182,7 @@ class ConnectionLimit:
         self._thread.join(1.0)
 
 
-def _local_address(sock: zmq.Socket) -> object:
+def _local_address(sock: zmq.Socket) -> int | str:
     """What getsockname() of an accepted connection gives for the bound endpoint: the port (tcp), the path (ipc)."""
     endpoint = sock.getsockopt_string(zmq.LAST_ENDPOINT)
     scheme, _, rest = endpoint.partition("://")
