@@ -99,9 +99,9 @@ def test_a_lost_camera_is_reopened_at_once_not_after_camera_lost_after_s(tmp_pat
     folder.mkdir()
     render_robot(folder, 2)
     endpoint = free_endpoint()
-    cfg = write_config(tmp_path / "live.yaml", folder, endpoint, source_extra={"pace": "fast", "loop": True},
-                       loop={"latest_frame_wins": False, "camera_lost_after_s": 60, "reconnect_min_s": 1.0,
-                             "status_period_s": 0.2})
+    cfg = write_config(tmp_path / "live.yaml", folder, endpoint,
+                       source_extra={"pace": "fast", "loop": True, "latest_only": False},
+                       loop={"camera_lost_after_s": 60, "reconnect_min_s": 1.0, "status_period_s": 0.2})
     _UnplugsOnce.opened = 0
     sub = Subscriber(endpoint)
     loop = LiveLoop(load_live_config(cfg), source_factory=lambda spec: _UnplugsOnce(default_source_factory(spec), 3))
