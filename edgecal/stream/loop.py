@@ -197,7 +197,9 @@ class LiveLoop:
                 self._opened[0].close()
                 self._opened = None
             if aborted:
-                return 0
+                # abort() closed the camera and socket under the running frame: whatever that frame raised
+                # is the abort's doing, not a failure, so the aborted loop ends cleanly
+                return 0  # noqa: B012
             took = f" ({(time.monotonic_ns() - self._stop_requested_ns) / 1e6:.0f} ms after the stop request)" \
                 if self._stop_requested_ns else ""
             log.info("stopped after %d frames%s", self.stats.frames, took)
@@ -386,7 +388,7 @@ class LiveLoop:
             self._send_ready(f"first frame processed; publishing on {self.config.publish.endpoint}")
         return True
 
-    def _detect(self, image: object, problem: str | None) -> tuple[list, str | None]:
+    def _detect(self, image: np.ndarray, problem: str | None) -> tuple[list, str | None]:
         """Detections in one image, or none and the reason when the image is unusable."""
         if problem is not None:
             return [], problem
@@ -395,7 +397,7 @@ class LiveLoop:
         except InputError as exc:            # e.g. an array the detector cannot read as an image
             return [], str(exc)
 
-    def _track(self, image: object, predicted: list[CornerPrediction]) -> list:
+    def _track(self, image: np.ndarray, predicted: list[CornerPrediction]) -> list:
         """The predicted boards confirmed in one image (tracking; see edgecal.stream.tracker)."""
         if not predicted:
             return []
