@@ -3,28 +3,38 @@ its sigma matches the spread of the errors (|error| / sigma median about 0.67)."
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 from edgecal.calibration.planar import calibrate_planar
 from edgecal.calibration.refine import RefineOptions
 from edgecal.calibration.types import CornerSet, RigidTransform
+from edgecal.camera import CameraModel
 from edgecal.synth.corners import project_target, stereo_truth
 from edgecal.targets import planar_target
 
 SIZE = (640, 480)
 
 
-def _views(rng: np.random.Generator, n: int = 8) -> tuple[object, list[CornerSet]]:
-    """Exact projections of n views of a 9x6 board, each corner with its own anisotropic covariance and
-    an error drawn from it: every third corner 8x noisier (a blurred or low-contrast corner)."""
-    cam = stereo_truth(dist=(-0.2, 0.1, 0.0, 0.0, 0.0))[0]
+def _exact_views(rng: np.random.Generator, cam: CameraModel, n: int) -> Iterator[CornerSet]:
+    """Exact projections of n hand-held views of a 9x6 board (drawn lazily: the caller's draws for each
+    view's errors follow that view's pose draws)."""
     target = planar_target(9, 6, 25.0)
-    views = []
     for _ in range(n):
         centre = np.array([100.0, 62.5, 0.0]) + rng.normal(0, 30, 3) * [1, 1, 0]
         tilt = np.radians(rng.uniform(-35, 35, 2))
         eye = centre + 480.0 * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])
-        cs = project_target(target, cam, RigidTransform.looking_at(eye, centre, up=np.array([0.0, -1.0, 0.0])), SIZE)
+        yield project_target(target, cam, RigidTransform.looking_at(eye, centre, up=np.array([0.0, -1.0, 0.0])),
+                             SIZE)
+
+
+def _views(rng: np.random.Generator, n: int = 8) -> tuple[object, list[CornerSet]]:
+    """Exact projections of n views of a 9x6 board, each corner with its own anisotropic covariance and
+    an error drawn from it: every third corner 8x noisier (a blurred or low-contrast corner)."""
+    cam = stereo_truth(dist=(-0.2, 0.1, 0.0, 0.0, 0.0))[0]
+    views = []
+    for cs in _exact_views(rng, cam, n):
         m = len(cs)
         s = np.where(np.arange(m) % 3 == 0, 0.4, 0.05)[:, None] * rng.uniform(0.6, 1.4, size=(m, 2))
         a = rng.uniform(0, np.pi, m)
@@ -91,13 +101,8 @@ def _real_like_views(rng: np.random.Generator, n: int = 8) -> tuple[object, list
     every corner errs by 0.12 px on top (the covariances say 0.01-0.03 px), and one corner in twenty is
     misdetected by 4-8 px with a covariance of 0.5 px (as the detector flags a corner it sees poorly)."""
     cam = stereo_truth(dist=(-0.2, 0.1, 0.0, 0.0, 0.0))[0]
-    target = planar_target(9, 6, 25.0)
     views = []
-    for _ in range(n):
-        centre = np.array([100.0, 62.5, 0.0]) + rng.normal(0, 30, 3) * [1, 1, 0]
-        tilt = np.radians(rng.uniform(-35, 35, 2))
-        eye = centre + 480.0 * np.array([np.sin(tilt[0]), np.sin(tilt[1]), -np.cos(tilt[0]) * np.cos(tilt[1])])
-        cs = project_target(target, cam, RigidTransform.looking_at(eye, centre, up=np.array([0.0, -1.0, 0.0])), SIZE)
+    for cs in _exact_views(rng, cam, n):
         m = len(cs)
         s = rng.uniform(0.01, 0.03, m)
         err = rng.normal(0.0, 0.12, (m, 2)) + s[:, None] * rng.standard_normal((m, 2))
