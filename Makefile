@@ -1,7 +1,7 @@
 # edgecal: the two commands of the README.
 #   make demo   render data, detect, calibrate, stream pose from a replay
-#   make test   the test suite
-#   make lint   ruff (style, imports, docstrings) and mypy (types); CI runs it before the tests
+#   make test   make lint, then the test suite (CI runs exactly this)
+#   make lint   ruff (style, imports, docstrings) and mypy (types)
 # Both create (or reuse) the virtualenv .venv and install what they need, Debian packages included.
 
 PYTHON ?= python3
@@ -32,7 +32,7 @@ system-deps:
 demo: $(VENV)/.installed
 	$(VENV)/bin/edgecal demo --out out/demo --force
 
-test: system-deps $(VENV)/.installed
+test: system-deps $(VENV)/.installed lint
 	$(PY) -m pytest -q
 
 lint: $(VENV)/.installed

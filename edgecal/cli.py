@@ -15,7 +15,7 @@ import sys
 from collections.abc import Sequence
 
 from edgecal.errors import EdgecalError
-from edgecal.runtime import tune_allocator
+from edgecal.runtime import quiet_opencv_log, tune_allocator
 from edgecal.version import __version__
 
 # Order here is the order in `edgecal --help`.
@@ -81,6 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # Every command is its own process and most process images (the daemon for weeks): tune glibc here,
     # not on `import edgecal`, which must leave a host program's allocator alone.
     tune_allocator()
+    quiet_opencv_log(verbose=args.verbose > 0)
     try:
         return int(args._run(args) or 0)
     except EdgecalError as exc:

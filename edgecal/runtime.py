@@ -30,3 +30,12 @@ def tune_allocator(mmap_threshold: int = 256 << 20, trim_threshold: int = 512 <<
     except (OSError, AttributeError):
         return False  # not glibc (musl, macOS): nothing to tune
     return bool(mallopt(_M_MMAP_THRESHOLD, mmap_threshold)) and bool(mallopt(_M_TRIM_THRESHOLD, trim_threshold))
+
+
+def quiet_opencv_log(verbose: bool = False) -> None:
+    """Keep OpenCV's own log lines off stderr (unless ``verbose``): edgecal reports every image it cannot
+    decode itself, in one line naming the file, and OpenCV's warnings would repeat it in its words."""
+    import cv2  # imported here: the benchmarks import this module for tune_allocator alone
+
+    levels = cv2.utils.logging
+    levels.setLogLevel(levels.LOG_LEVEL_WARNING if verbose else levels.LOG_LEVEL_SILENT)

@@ -268,6 +268,18 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, args, needle) -> None:
     assert len(res.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("content", [
+    b"\x89PNG\r\n\x1a\n garbage after a PNG signature",   # OpenCV's PNG reader logs its own errors
+    b"P5\n640 480\n255\ntruncated",                          # ... and so does its PGM reader
+])
+def test_cli_broken_image_is_one_line_without_opencv_log(tmp_path, content) -> None:
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(content)
+    res = _cli("detect", "--board", "9x6", str(bad))
+    assert res.returncode == 2 and "broken.png: not a readable image" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
 def test_cli_unreadable_image_and_bad_target_field(tmp_path) -> None:
     bad = tmp_path / "bad.png"
     bad.write_bytes(b"not an image")
