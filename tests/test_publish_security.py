@@ -120,25 +120,34 @@ def test_remote_binding_with_keys_is_accepted(robot: Path, keys: Path, tmp_path:
 FLOOD = 1100          # idle TCP connections, more than the 1024 file descriptors the daemon gets here
 
 
+def _raise_fd_limit(need: int) -> None:
+    """Let this test process open ``need`` descriptors (skip when the hard limit does not allow it)."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard < need:
+        pytest.skip(f"the test needs {need} file descriptors (hard limit {hard})")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, need), hard))
+
+
+def _start_daemon_with_1024_fds(cfg: Path, log: Path) -> subprocess.Popen:
+    """A real daemon on ``cfg`` with the 1024-descriptor soft limit a service gets by default."""
+    def limit_fds() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
+
+    return subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(cfg)],
+                            env={**os.environ, "NUMBA_NUM_THREADS": "1"}, stdout=log.open("wb"),
+                            stderr=subprocess.STDOUT, preexec_fn=limit_fds)  # noqa: PLW1509
+
+
 def test_idle_connections_cannot_starve_a_subscriber(robot: Path, tmp_path: Path) -> None:
     """1,100 TCP connections that never speak ZeroMQ, against a daemon limited to 1024 file descriptors (the
     soft limit a service gets by default): a real subscriber that connects during the flood receives poses,
     and after publish.handshake_timeout_s the daemon has dropped them (its descriptors back under 100)."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    if hard < FLOOD + 200:
-        pytest.skip(f"the test needs {FLOOD + 200} file descriptors (hard limit {hard})")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, FLOOD + 200), hard))
+    _raise_fd_limit(FLOOD + 200)
     endpoint = free_endpoint()
     port = int(endpoint.rsplit(":", 1)[1])
     cfg = write_config(tmp_path / "live.yaml", robot, endpoint, source_extra={"loop": True})
     log = tmp_path / "run.log"
-
-    def limit_fds() -> None:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
-
-    proc = subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(cfg)],
-                            env={**os.environ, "NUMBA_NUM_THREADS": "1"}, stdout=log.open("wb"),
-                            stderr=subprocess.STDOUT, preexec_fn=limit_fds)  # noqa: PLW1509
+    proc = _start_daemon_with_1024_fds(cfg, log)
     flood: list[socket.socket] = []
     sub = None
     try:
@@ -186,24 +195,14 @@ def test_subscribers_that_complete_the_handshake_cannot_take_the_descriptors(rob
     limited to 1024 file descriptors: it holds publish.max_connections of them and shuts the rest at accept,
     so its descriptors stay bounded, the subscriber connected before the flood keeps receiving poses, and a
     reload - which must open files - still works while the flood goes on."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-    need = 2 * ZMTP_FLOOD + 300          # a ZeroMQ socket here holds its connection and a mailbox descriptor
-    if hard < need:
-        pytest.skip(f"the test needs {need} file descriptors (hard limit {hard})")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, need), hard))
+    _raise_fd_limit(2 * ZMTP_FLOOD + 300)    # a ZeroMQ socket here holds its connection and a mailbox descriptor
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", robot, endpoint, source_extra={"loop": True})
     doc = yaml.safe_load(cfg.read_text())
     doc["publish"]["max_connections"] = 32
     cfg.write_text(yaml.safe_dump(doc))
     log = tmp_path / "run.log"
-
-    def limit_fds() -> None:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
-
-    proc = subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(cfg)],
-                            env={**os.environ, "NUMBA_NUM_THREADS": "1"}, stdout=log.open("wb"),
-                            stderr=subprocess.STDOUT, preexec_fn=limit_fds)  # noqa: PLW1509
+    proc = _start_daemon_with_1024_fds(cfg, log)
     ctx = zmq.Context()
     ctx.MAX_SOCKETS = ZMTP_FLOOD + 100
     flood: list[zmq.Socket] = []
