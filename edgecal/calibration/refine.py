@@ -1,59 +1,46 @@
 """Non-linear refinement of cameras and poses, robust to outliers, with parameter standard deviations.
 
-One solver serves every case: observations of a target by one or two cameras in one or more views.
-The unknowns are each camera's intrinsics (fx, fy, cx, cy and the free parameters of its lens model,
-edgecal.camera.DISTORTION_MODELS), each view's target pose in camera 0 (``T_cam0_target``) and, for
-each further camera c, the rig pose ``T_camc_cam0``. Camera c sees target points at
-``R_c0 (R_v X + t_v) + t_c0``. One box image from each of two cameras is one view seen by two cameras;
-the planar multi-view case has many views.
+One solver serves every case: observations of a target by one or two cameras in one or more views (the
+problem itself, its unknowns and its sparse Jacobian: edgecal.calibration.problem). One box image from
+each of two cameras is one view seen by two cameras; the planar multi-view case has many views.
 
-The solver is scipy's least_squares (trust-region reflective) with an explicit sparse Jacobian: each
-residual depends only on its camera's intrinsics, its view's pose and its rig pose, so 300 stereo views
-give a Jacobian that is 99 % zeros (a dense one of 900 views would need ~8 GB). The derivatives are
-analytic (edgecal.camera.project's gradients and cv2.Rodrigues'). After a robust (Huber) fit, corners
-whose residual is far outside the noise are dropped and reported, the rest is fitted with plain least
-squares, and the covariance is s^2 (J^T J)^-1 with s^2 = SSR / (m - n).
+After a robust (Huber) fit, corners whose residual is far outside the noise are dropped and reported, the
+rest is fitted with plain least squares, and the covariance is s^2 (J^T J)^-1 with s^2 = SSR / (m - n).
+When every corner carries the detector's covariance the residuals are whitened by it, widened by the
+noise floor the fit shows (noise_floor_px2).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 import scipy.sparse
-from scipy.optimize import least_squares
 
 from edgecal.calibration.checks import DegenerateInput
+from edgecal.calibration.problem import (
+    POSE_NAMES,
+    Layout,
+    Observation,
+    Problem,
+    lens_of,
+    residual_norms,
+    weighted,
+)
 from edgecal.calibration.types import (
     CAMERA_NAMES,
     Calibration,
     CornerSet,
     RigidTransform,
 )
-from edgecal.camera import DISTORTION_MODELS, LENS_PARAMS, CameraModel, project
+from edgecal.camera import DISTORTION_MODELS, LENS_PARAMS, CameraModel
 from edgecal.config import setting
 
-POSE_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz")
+__all__ = ["DISTORTION_CHOICES", "HUBER_SIGMAS", "Observation", "RefineOptions", "RefineResult", "as_lens",
+           "calibration_from_result", "lens_of", "noise_floor_px2", "observations_for", "refine"]
+
 # Every lens model a calibration can fit, and "auto" (edgecal.calibration.lens_choice picks one).
 DISTORTION_CHOICES = (*DISTORTION_MODELS, "auto")
-# Relative tolerances of least_squares: far below the 1e-4 relative uncertainty of a good calibration.
-_TOL = 1e-10
-_MAX_NFEV = 200
-# Up to this many Jacobian entries (8 bytes each: 32 MB) the solver works on the dense Jacobian.
-_DENSE_JACOBIAN_ENTRIES = 4_000_000
-
-
-@dataclass(frozen=True)
-class Observation:
-    """Corners of the target seen by ``camera`` in ``view``: 3-D target points (mm) and pixels."""
-
-    camera: int
-    view: int
-    object_mm: np.ndarray   # (N, 3)
-    image_px: np.ndarray    # (N, 2)
-    labels: tuple[str, ...] = ()  # one name per corner, for reports (e.g. "left top (2,3)")
-    image_cov_px2: np.ndarray | None = None   # (N, 2, 2) corner covariances: the residuals are whitened by them
 
 
 @dataclass(frozen=True)
@@ -96,13 +83,6 @@ class RefineResult:
         return float(self.std[self.names.index(name)]) if name in self.names else float("nan")
 
 
-def lens_of(distortion: str) -> tuple[str, tuple[str, ...]]:
-    """(lens model, free parameters) of a distortion option; DegenerateInput listing the known ones if unknown."""
-    if distortion not in DISTORTION_MODELS:
-        raise DegenerateInput(f"distortion model {distortion!r} unknown (one of {', '.join(DISTORTION_MODELS)})")
-    return DISTORTION_MODELS[distortion]
-
-
 def as_lens(camera: CameraModel, distortion: str) -> CameraModel:
     """``camera`` in the lens model of ``distortion``, the parameters outside its free set 0.
 
@@ -118,61 +98,6 @@ def as_lens(camera: CameraModel, distortion: str) -> CameraModel:
         params = np.zeros(len(LENS_PARAMS[lens]))
     params[[i for i, n in enumerate(LENS_PARAMS[lens]) if n not in free]] = 0.0
     return camera.with_lens(lens, params)
-
-
-class _Layout:
-    """Where each unknown sits in the parameter vector."""
-
-    def __init__(self, cameras: list[CameraModel], n_views: int, distortion: str, fix_pp: bool) -> None:
-        lens, free = lens_of(distortion)
-        names = LENS_PARAMS[lens]
-        self.free_intr = np.array([0, 1] + ([] if fix_pp else [2, 3])
-                                  + [4 + i for i, n in enumerate(names) if n in free], dtype=np.int64)
-        self.n_cameras, self.n_views = len(cameras), n_views
-        self.names: list[str] = []
-        self.cam_slice = []
-        for c, cam in enumerate(cameras):
-            self.cam_slice.append(slice(len(self.names), len(self.names) + len(self.free_intr)))
-            self.names += [f"cam{c}.{cam.intrinsic_names[i]}" for i in self.free_intr]
-        self.view_slice = []
-        for v in range(n_views):
-            self.view_slice.append(slice(len(self.names), len(self.names) + 6))
-            self.names += [f"view{v}.{n}" for n in POSE_NAMES]
-        self.rig_slice = []
-        for c in range(1, self.n_cameras):
-            self.rig_slice.append(slice(len(self.names), len(self.names) + 6))
-            self.names += [f"rig{c}.{n}" for n in POSE_NAMES]
-
-    def pack(self, cameras: list[CameraModel], views: list[RigidTransform], rigs: list[RigidTransform]) -> np.ndarray:
-        x = np.zeros(len(self.names))
-        for c, cam in enumerate(cameras):
-            x[self.cam_slice[c]] = cam.intrinsics[self.free_intr]
-        for v, p in enumerate(views):
-            x[self.view_slice[v]] = np.r_[np.ravel(p.rvec), np.ravel(p.tvec)]
-        for c, p in enumerate(rigs):
-            x[self.rig_slice[c]] = np.r_[np.ravel(p.rvec), np.ravel(p.tvec)]
-        return x
-
-    def unpack(self, x: np.ndarray, start: list[CameraModel]
-               ) -> tuple[list[CameraModel], list[RigidTransform], list[RigidTransform]]:
-        cams = []
-        for c in range(self.n_cameras):
-            full = start[c].intrinsics.copy()   # fixed terms keep their start value (0 outside the model)
-            full[self.free_intr] = x[self.cam_slice[c]]
-            cams.append(start[c].with_intrinsics(full))
-        views = [RigidTransform(x[s][:3].copy(), x[s][3:].copy()) for s in self.view_slice]
-        rigs = [RigidTransform(x[s][:3].copy(), x[s][3:].copy()) for s in self.rig_slice]
-        return cams, views, rigs
-
-
-def _rotations(rvecs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation matrices (K, 3, 3) of rotation vectors (K, 3) and dR/drvec as (K, 3 [rvec], 3, 3)."""
-    R = np.empty((len(rvecs), 3, 3))
-    dR = np.empty((len(rvecs), 3, 3, 3))
-    for i, r in enumerate(rvecs):
-        m, j = cv2.Rodrigues(r.reshape(3, 1))
-        R[i], dR[i] = m, j.reshape(3, 3, 3)
-    return R, dR
 
 
 # Huber threshold of a weighted problem, in the corners' own sigmas: beyond 3 sigma a residual counts linearly.
@@ -216,125 +141,43 @@ def noise_floor_px2(residuals: np.ndarray, cov_px2: np.ndarray, dof_fraction: fl
     return float(hi)
 
 
-def weighted(obs: list[Observation]) -> bool:
-    """Whether the corners of every observation carry covariances (then the problem is weighted by them)."""
-    return bool(obs) and all(o.image_cov_px2 is not None for o in obs)
+def _parameter_covariance(jac: scipy.sparse.csr_matrix, s2: float, names: list[str]
+                          ) -> tuple[np.ndarray, bool, list[str]]:
+    """s2 (J^T J)^-1, whether J is rank-deficient (then the covariance is all inf) and the names of the
+    parameters in its null space."""
+    jtj = (jac.T @ jac).toarray()
+    # Scale columns before inverting: fx ~ 1e3 and k1 ~ 1e-1 live in one matrix.
+    d = np.sqrt(np.maximum(np.diag(jtj), 1e-300))
+    eig, vec = np.linalg.eigh(jtj / np.outer(d, d))
+    null = np.flatnonzero(eig < 1e-12 * eig[-1])
+    if len(null):
+        return (np.full(jtj.shape, np.inf), True,
+                sorted({names[i] for k in null for i in np.flatnonzero(np.abs(vec[:, k]) > 0.3)}))
+    return s2 * (vec / eig) @ vec.T / np.outer(d, d), False, []
 
 
-class _Problem:
-    """The stacked inlier corners of every observation and their residuals and sparse Jacobian, whitened
-    by the corners' covariances when ``whiten`` (|L^T r|^2 = r^T C^-1 r: each corner counts by how well
-    the detector knows it), each widened by ``floor_px2`` on both axes (noise_floor_px2)."""
+def _drop_outliers(obs: list[Observation], norms: list[np.ndarray], units: list[np.ndarray],
+                   masks: list[np.ndarray], options: RefineOptions, whiten: bool
+                   ) -> tuple[list[np.ndarray], list[str]]:
+    """The inlier masks without the corners whose residual is outside the noise, and a line for each dropped.
 
-    def __init__(self, obs: list[Observation], masks: list[np.ndarray], layout: _Layout,
-                 start: list[CameraModel], whiten: bool = False, floor_px2: float = 0.0) -> None:
-        self.layout, self.start = layout, start
-        keep = [(o, m) for o, m in zip(obs, masks) if m.any()]
-        self.white = None
-        if whiten:
-            covs = [o.image_cov_px2 for o, _ in keep]
-            if any(c is None for c in covs):    # the caller whitens only views that all carry covariances
-                raise ValueError("whitening needs a covariance for every corner")
-            cov = np.concatenate([c[m] for c, (_, m) in zip(covs, keep) if c is not None]) + floor_px2 * np.eye(2)
-            self.white = np.transpose(np.linalg.cholesky(np.linalg.inv(cov)), (0, 2, 1))
-        self.X = np.concatenate([o.object_mm[m] for o, m in keep])
-        self.q = np.concatenate([o.image_px[m] for o, m in keep])
-        self.cam = np.concatenate([np.full(int(m.sum()), o.camera) for o, m in keep])
-        self.view = np.concatenate([np.full(int(m.sum()), o.view) for o, m in keep])
-        self.view_start = np.array([s.start for s in layout.view_slice], dtype=np.int64)
-        self._cache: tuple[bytes, np.ndarray, scipy.sparse.csr_matrix] | None = None
-
-    @property
-    def n_residuals(self) -> int:
-        return 2 * len(self.X)
-
-    def evaluate(self, x: np.ndarray) -> tuple[np.ndarray, scipy.sparse.csr_matrix]:
-        """Residuals (2M,) reprojected - detected (px, or whitened) and their Jacobian (2M, n), sparse."""
-        key = x.tobytes()
-        if self._cache is not None and self._cache[0] == key:
-            return self._cache[1], self._cache[2]
-        lay = self.layout
-        cams, _, _ = lay.unpack(x, self.start)
-        rv = np.array([x[s] for s in lay.view_slice])
-        Rv, dRv = _rotations(rv[:, :3])
-        p_view = np.einsum("nij,nj->ni", Rv[self.view], self.X) + rv[self.view, 3:]
-        dp_drvec = np.einsum("nkij,nj->nik", dRv[self.view], self.X)      # d(R_v X)/d rvec_v: (M, 3, 3)
-        res = np.empty((len(self.X), 2))
-        n_intr = len(lay.free_intr)
-        n_cols = n_intr + 6 + (6 if lay.n_cameras > 1 else 0)
-        vals = np.zeros((len(self.X), 2, n_cols))
-        cols = np.zeros((len(self.X), n_cols), dtype=np.int64)
-        for c in range(lay.n_cameras):
-            sel = np.flatnonzero(self.cam == c)
-            if not len(sel):
-                continue
-            pv = p_view[sel]
-            if c == 0:
-                p_cam, R_c0 = pv, np.eye(3)
-            else:
-                rig = x[lay.rig_slice[c - 1]]
-                Rr, dRr = _rotations(rig[None, :3])
-                R_c0 = Rr[0]
-                p_cam = pv @ R_c0.T + rig[3:]
-            q, dq_dp, dq_di = project(p_cam, cams[c], get_gradients=True)
-            res[sel] = q - self.q[sel]
-            vals[sel, :, :n_intr] = dq_di[:, :, lay.free_intr]
-            cols[sel, :n_intr] = np.arange(lay.cam_slice[c].start, lay.cam_slice[c].stop)
-            dq_dview = dq_dp @ R_c0
-            vals[sel, :, n_intr:n_intr + 3] = dq_dview @ dp_drvec[sel]
-            vals[sel, :, n_intr + 3:n_intr + 6] = dq_dview
-            cols[sel, n_intr:n_intr + 6] = self.view_start[self.view[sel], None] + np.arange(6)
-            if c > 0:
-                vals[sel, :, n_intr + 6:n_intr + 9] = dq_dp @ np.einsum("kij,nj->nik", dRr[0], pv)
-                vals[sel, :, n_intr + 9:] = dq_dp
-                cols[sel, n_intr + 6:] = lay.rig_slice[c - 1].start + np.arange(6)
-            elif n_cols > n_intr + 6:
-                # camera 0 has no rig pose: point its unused entries at a real column with value 0
-                cols[sel, n_intr + 6:] = cols[sel, :1]
-        if self.white is not None:
-            res = np.einsum("nij,nj->ni", self.white, res)
-            vals = np.einsum("nij,njk->nik", self.white, vals)
-        m = len(self.X)
-        rows = np.repeat(np.arange(2 * m).reshape(m, 2), n_cols, axis=1).reshape(m, 2, n_cols)
-        jac = scipy.sparse.csr_matrix((vals.ravel(), (rows.ravel(), np.repeat(cols[:, None, :], 2, axis=1).ravel())),
-                                      shape=(2 * m, len(x)))
-        r = res.ravel()
-        self._cache = (key, r, jac)
-        return r, jac
-
-    def solve(self, x0: np.ndarray, huber_px: float | None) -> np.ndarray:
-        """Minimise the (Huber-robust when ``huber_px``) sum of squared residuals from ``x0``."""
-        # Small problems: the exact trust-region step on the dense Jacobian (a few iterations). Large ones keep
-        # the Jacobian sparse and solve each step by LSMR, to a tolerance tight enough that the outer iteration
-        # converges as fast (scipy's default 1e-8 leaves steps so inexact that 200 evaluations do not suffice).
-        dense = self.n_residuals * len(x0) <= _DENSE_JACOBIAN_ENTRIES
-
-        def residuals(p: np.ndarray) -> np.ndarray:
-            return self.evaluate(p)[0]
-
-        def jacobian(p: np.ndarray) -> np.ndarray | scipy.sparse.csr_matrix:
-            jac = self.evaluate(p)[1]
-            return jac.toarray() if dense else jac
-
-        kw: dict = {"tr_solver": "exact"} if dense else {"tr_solver": "lsmr", "tr_options": {"atol": 1e-12,
-                                                                                              "btol": 1e-12}}
-        sol = least_squares(residuals, x0, jac=jacobian, method="trf",
-                            loss="huber" if huber_px else "linear", f_scale=huber_px or 1.0, x_scale="jac",
-                            ftol=_TOL, xtol=_TOL, gtol=_TOL, max_nfev=_MAX_NFEV, **kw)
-        return sol.x
-
-
-def _residual_norms(obs: list[Observation], layout: _Layout, start: list[CameraModel],
-                    x: np.ndarray, whiten: bool = False, floor_px2: float = 0.0) -> list[np.ndarray]:
-    """Per observation, (N, 2) reprojected - detected for every corner (outliers included); px, or in the
-    corners' own sigmas (covariance + ``floor_px2``) when ``whiten``."""
-    everything = [np.ones(len(o.object_mm), dtype=bool) for o in obs]
-    r, _ = _Problem(obs, everything, layout, start, whiten, floor_px2).evaluate(x)
-    out, k = [], 0
-    for o in obs:
-        out.append(r[2 * k:2 * (k + len(o.object_mm))].reshape(-1, 2).copy())
-        k += len(o.object_mm)
-    return out
+    ``norms`` are the residual norms in px per observation, ``units`` the same in the corners' own sigmas when
+    weighted (else ``norms``): a corner known to be noisy is not an outlier for being noisy; it must also be
+    outlier_min_px off.
+    """
+    inlier_norms = np.concatenate([n[m] for n, m in zip(units, masks)])
+    # Per-corner residual norms of 2-D Gaussian noise follow a Rayleigh law: median = 1.1774 sigma.
+    sigma = float(np.median(inlier_norms)) / 1.1774
+    limit = (options.outlier_sigmas * sigma if whiten
+             else max(options.outlier_min_px, options.outlier_sigmas * sigma))
+    kept, dropped = [], []
+    for o, n, u, m in zip(obs, norms, units, masks):
+        bad = m & (u > limit) & (n > options.outlier_min_px)
+        for i in np.flatnonzero(bad):
+            dropped.append(f"{o.labels[i]}: residual {n[i]:.2f} px" + (
+                f" = {u[i]:.1f} sigma > {limit:.1f} sigma" if whiten else f" > {limit:.2f} px"))
+        kept.append(m & ~bad)
+    return kept, dropped
 
 
 def refine(observations: list[Observation], cameras: list[CameraModel], view_poses: list[RigidTransform],
@@ -348,7 +191,7 @@ def refine(observations: list[Observation], cameras: list[CameraModel], view_pos
     if len(rig_poses) != len(cameras) - 1:
         raise ValueError("one rig pose is needed for every camera after the first")
     start = [as_lens(c, options.distortion) for c in cameras]
-    layout = _Layout(start, len(view_poses), options.distortion, options.fix_principal_point)
+    layout = Layout(start, len(view_poses), options.distortion, options.fix_principal_point)
     obs = [Observation(o.camera, o.view, np.asarray(o.object_mm, np.float64).reshape(-1, 3),
                        np.asarray(o.image_px, np.float64).reshape(-1, 2),
                        tuple(o.labels) or tuple(f"cam{o.camera} view{o.view} #{i}" for i in range(len(o.object_mm))),
@@ -370,68 +213,40 @@ def refine(observations: list[Observation], cameras: list[CameraModel], view_pos
         """The variance the inliers' covariances lack at ``x`` (noise_floor_px2); 0 unweighted."""
         if not whiten:
             return 0.0
-        r = np.concatenate([res[m] for res, m in zip(_residual_norms(obs, layout, start, x), masks)])
+        r = np.concatenate([res[m] for res, m in zip(residual_norms(obs, layout, start, x), masks)])
         cov = np.concatenate([np.asarray(o.image_cov_px2)[m] for o, m in zip(obs, masks)])
         return noise_floor_px2(r, cov, 1.0 - n_params / max(2 * len(r), 1))
 
     # Robust pass: a few bad corners must not drag the solution before they can be identified. Weighted,
     # it is repeated once with the covariances widened by what the first fit shows they lack (the Huber
     # threshold and the outlier test are in sigmas: they mean something only on a scale the corners follow).
-    x = _Problem(obs, masks, layout, start, whiten).solve(x, huber)
+    x = Problem(obs, masks, layout, start, whiten).solve(x, huber)
     floor = floor_of(x)
     if floor > 0.0:
-        x = _Problem(obs, masks, layout, start, whiten, floor).solve(x, huber)
+        x = Problem(obs, masks, layout, start, whiten, floor).solve(x, huber)
     for _ in range(options.max_rounds):
         floor = floor_of(x)
-        norms = [np.linalg.norm(r, axis=1) for r in _residual_norms(obs, layout, start, x)]
-        # Outliers are judged in the corners' own sigmas when weighted: a corner known to be noisy is not
-        # an outlier for being noisy; it must also be outlier_min_px off.
-        units = ([np.linalg.norm(r, axis=1) for r in _residual_norms(obs, layout, start, x, True, floor)]
+        norms = [np.linalg.norm(r, axis=1) for r in residual_norms(obs, layout, start, x)]
+        units = ([np.linalg.norm(r, axis=1) for r in residual_norms(obs, layout, start, x, True, floor)]
                  if whiten else norms)
-        inlier_norms = np.concatenate([n[m] for n, m in zip(units, masks)])
-        # Per-corner residual norms of 2-D Gaussian noise follow a Rayleigh law: median = 1.1774 sigma.
-        sigma = float(np.median(inlier_norms)) / 1.1774
-        limit = (options.outlier_sigmas * sigma if whiten
-                 else max(options.outlier_min_px, options.outlier_sigmas * sigma))
-        changed = False
-        for o, n, u, m in zip(obs, norms, units, masks):
-            bad = m & (u > limit) & (n > options.outlier_min_px)
-            for i in np.flatnonzero(bad):
-                dropped.append(f"{o.labels[i]}: residual {n[i]:.2f} px" + (
-                    f" = {u[i]:.1f} sigma > {limit:.1f} sigma" if whiten else f" > {limit:.2f} px"))
-            if bad.any():
-                m &= ~bad
-                changed = True
+        masks, newly_dropped = _drop_outliers(obs, norms, units, masks, options, whiten)
+        dropped += newly_dropped
         if 2 * sum(int(m.sum()) for m in masks) <= n_params:
             raise DegenerateInput("too many corners were rejected as outliers to determine the calibration")
-        x = _Problem(obs, masks, layout, start, whiten, floor).solve(x, None)
-        if not changed:
+        x = Problem(obs, masks, layout, start, whiten, floor).solve(x, None)
+        if not newly_dropped:
             break
 
     # The covariance of the weighted problem: s2 (J_w^T J_w)^-1, s2 the whitened residual's chi^2 per degree
     # of freedom (about 1 when the corner model, widened by the floor, is right; it scales the model by what
     # the fit shows).
-    r, j = _Problem(obs, masks, layout, start, whiten, floor).evaluate(x)
-    r_px = _Problem(obs, masks, layout, start).evaluate(x)[0] if whiten else r
+    r, j = Problem(obs, masks, layout, start, whiten, floor).evaluate(x)
+    r_px = Problem(obs, masks, layout, start).evaluate(x)[0] if whiten else r
     dof = max(len(r) - n_params, 1)
-    s2 = float(r @ r) / dof
-    jtj = (j.T @ j).toarray()
-    # Scale columns before inverting: fx ~ 1e3 and k1 ~ 1e-1 live in one matrix.
-    d = np.sqrt(np.maximum(np.diag(jtj), 1e-300))
-    jtj_n = jtj / np.outer(d, d)
-    eig, vec = np.linalg.eigh(jtj_n)
-    rank_deficient = bool(eig[0] < 1e-12 * eig[-1])
-    undetermined: list[str] = []
-    if rank_deficient:
-        cov = np.full((n_params, n_params), np.inf)
-        for k in np.flatnonzero(eig < 1e-12 * eig[-1]):
-            undetermined += [layout.names[i] for i in np.flatnonzero(np.abs(vec[:, k]) > 0.3)]
-        undetermined = sorted(set(undetermined))
-    else:
-        cov = s2 * (vec / eig) @ vec.T / np.outer(d, d)
+    cov, rank_deficient, undetermined = _parameter_covariance(j, float(r @ r) / dof, layout.names)
     std = np.sqrt(np.abs(np.diag(cov)))
     cams, views, rigs = layout.unpack(x, start)
-    residuals = _residual_norms(obs, layout, start, x)
+    residuals = residual_norms(obs, layout, start, x)
     inliers = [m.copy() for m in masks]
     rms = float(np.sqrt(np.mean(np.sum(r_px.reshape(-1, 2) ** 2, axis=1))))
     return RefineResult(cams, views, rigs, list(layout.names), x, std, cov, rms,
