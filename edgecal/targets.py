@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from edgecal.config import ConfigReader, load_yaml_mapping
+from edgecal.config import ConfigReader, load_yaml_mapping, read_settings, setting
 from edgecal.errors import ConfigError, quote
 
 
@@ -99,9 +99,6 @@ class Target:
         return bool(np.linalg.svd(centred, compute_uv=False)[-1] < 1e-6 * max(1.0, np.abs(centred).max()))
 
 
-_BOARD_FIELDS = ("name", "inner_corners", "square_mm", "origin_mm", "x_axis", "y_axis")
-
-
 def _unit_check(v: list[float]) -> str | None:
     n = float(np.linalg.norm(v))
     if abs(n - 1.0) > 1e-3:
@@ -109,36 +106,78 @@ def _unit_check(v: list[float]) -> str | None:
     return None
 
 
-def _read_board(r: ConfigReader, index: int) -> Board:
-    r.reject_unknown(_BOARD_FIELDS)
-    name = r.string("name", f"board{index}")
-    cr = r.raw("inner_corners")
-    if (not isinstance(cr, (list, tuple)) or len(cr) != 2
-            or any(isinstance(v, bool) or not isinstance(v, int) for v in cr)):
-        raise r.fail("inner_corners", f"must be [cols, rows], two whole numbers (got {quote(cr)})")
-    cols, rows = int(cr[0]), int(cr[1])
+def _read_inner_corners(r: ConfigReader, key: str) -> tuple[int, int]:
+    value = r.raw(key)
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or any(isinstance(v, bool) or not isinstance(v, int) for v in value)):
+        raise r.fail(key, f"must be [cols, rows], two whole numbers (got {quote(value)})")
+    cols, rows = int(value[0]), int(value[1])
     if cols < 2 or rows < 2:
-        raise r.fail("inner_corners", f"needs at least 2 x 2 inner corners (got {cols} x {rows})")
-    square = r.number("square_mm", positive=True)
-    origin = np.array(r.vector("origin_mm", 3, [0.0, 0.0, 0.0]))
-    x_axis = np.array(r.vector("x_axis", 3, [1.0, 0.0, 0.0], check=_unit_check))
-    y_axis = np.array(r.vector("y_axis", 3, [0.0, 1.0, 0.0], check=_unit_check))
-    if abs(float(x_axis @ y_axis)) > 1e-3:
-        raise r.fail("y_axis", "must be perpendicular to x_axis")
-    return Board(name, cols, rows, square, origin, x_axis, y_axis)
+        raise r.fail(key, f"needs at least 2 x 2 inner corners (got {cols} x {rows})")
+    return cols, rows
+
+
+def _read_origin(r: ConfigReader, key: str) -> tuple[float, ...]:
+    return tuple(r.vector(key, 3, [0.0, 0.0, 0.0]))
+
+
+def _read_x_axis(r: ConfigReader, key: str) -> tuple[float, ...]:
+    return tuple(r.vector(key, 3, [1.0, 0.0, 0.0], check=_unit_check))
+
+
+def _read_y_axis(r: ConfigReader, key: str) -> tuple[float, ...]:
+    return tuple(r.vector(key, 3, [0.0, 1.0, 0.0], check=_unit_check))
+
+
+@dataclass(frozen=True, kw_only=True)
+class _BoardEntry:
+    """One entry of a target file's ``boards`` list as the file writes it; `Board` is what the code uses
+    (the file says ``inner_corners: [cols, rows]`` and lists, a Board holds cols, rows and arrays)."""
+
+    name: str | None = setting(None, doc="the board's name (default board<index>), unique in the target")
+    inner_corners: tuple[int, int] = setting(doc="[cols, rows] of inner corners", read=_read_inner_corners)
+    square_mm: float = setting(doc="the side of a square (mm)", positive=True)
+    origin_mm: tuple[float, ...] = setting((0.0, 0.0, 0.0), doc="inner corner (col 0, row 0) in the target "
+                                           "frame (mm)", read=_read_origin)
+    x_axis: tuple[float, ...] = setting((1.0, 0.0, 0.0), doc="unit direction of increasing col",
+                                        read=_read_x_axis)
+    y_axis: tuple[float, ...] = setting((0.0, 1.0, 0.0), doc="unit direction of increasing row",
+                                        read=_read_y_axis)
+
+    def config_problem(self) -> tuple[str, str] | None:
+        """The axes must be perpendicular (read_settings names the field)."""
+        if abs(float(np.dot(self.x_axis, self.y_axis))) > 1e-3:
+            return "y_axis", "must be perpendicular to x_axis"
+        return None
+
+    def board(self, index: int) -> Board:
+        """The Board this entry describes (``index`` names an unnamed one)."""
+        cols, rows = self.inner_corners
+        return Board(self.name or f"board{index}", cols, rows, self.square_mm, np.array(self.origin_mm),
+                     np.array(self.x_axis), np.array(self.y_axis))
+
+
+def _read_boards(r: ConfigReader, key: str) -> tuple[Board, ...]:
+    return tuple(read_settings(_BoardEntry, br).board(i) for i, br in enumerate(r.sections(key)))
+
+
+@dataclass(frozen=True, kw_only=True)
+class _TargetFile:
+    """A target file (configs/targets/*.yaml) as written."""
+
+    name: str | None = setting(None, doc="the target's name (default: the file's stem)")
+    boards: tuple[Board, ...] = setting(doc="the boards, each placed in the target frame", read=_read_boards)
+    description: str | None = setting(None, doc="free text for people")
 
 
 def target_from_mapping(data: dict, source: str) -> Target:
     """Build and validate a Target from a parsed YAML mapping; ``source`` names it in messages."""
-    r = ConfigReader(data, source)
-    r.reject_unknown(("name", "boards", "description"))
-    name = r.string("name", Path(source).stem or "target")
-    boards = tuple(_read_board(br, i) for i, br in enumerate(r.sections("boards")))
-    names = [b.name for b in boards]
+    entry = read_settings(_TargetFile, ConfigReader(data, source))
+    names = [b.name for b in entry.boards]
     for i, n in enumerate(names):
         if names.index(n) != i:
             raise ConfigError(f"{source}: field 'boards[{i}].name' repeats the board name {quote(n)}")
-    return Target(name, boards, source)
+    return Target(entry.name or Path(source).stem or "target", entry.boards, source)
 
 
 def load_target(path: str | Path) -> Target:
