@@ -54,6 +54,21 @@ def test_pose_message_round_trip() -> None:
     assert msg["valid"] and msg["quality"]["boards"] == ["front", "left"]
 
 
+def test_pose_message_builds_the_latency_basis_and_how_the_boards_were_found() -> None:
+    # The live loop's whole message comes from pose_message: nothing is patched into it afterwards.
+    msg = decode(encode(pose_message(a_pose(), 7, 1_000_000, 13_000_000, capture_ns=4_000_000,
+                                     latency_from="receive", detection="tracked")))
+    assert msg["stamp_ns"] == 1_000_000 and msg["latency_ns"] == 9_000_000 and msg["latency_from"] == "receive"
+    assert msg["quality"]["detection"] == "tracked"
+    plain = pose_message(a_pose(), 7, 1_000_000, 13_000_000)
+    assert plain["latency_ns"] == 12_000_000 and plain["latency_from"] == "capture"
+    assert "detection" not in plain["quality"]
+    with pytest.raises(ValueError, match="latency_from"):
+        pose_message(a_pose(), 7, 0, 1, latency_from="device")
+    with pytest.raises(ValueError, match="detection"):
+        pose_message(a_pose(), 7, 0, 1, detection="guessed")
+
+
 def test_invalid_pose_message_has_nulls_not_nan() -> None:
     body = encode(pose_message(Pose.invalid("no board detected"), 1, 0, 5))
     assert b"NaN" not in body

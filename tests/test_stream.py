@@ -9,8 +9,11 @@ import numpy as np
 import pytest
 
 from edgecal.errors import ConfigError
+from edgecal.pose import Pose
+from edgecal.publish import pose_message
 from edgecal.stream import LiveLoop, load_live_config
-from edgecal.stream.loop import check_image, default_source_factory
+from edgecal.stream.frame_pipeline import grey_image
+from edgecal.stream.loop import default_source_factory
 
 from .live_fixtures import (
     Subscriber,
@@ -40,7 +43,10 @@ def test_loop_publishes_poses_matching_truth(sequence: tuple[Path, dict], tmp_pa
     # every frame's pose seen, and a status message
     sub = run_loop_until(cfg, endpoint, lambda s: {m["seq"] % N_FRAMES for m in s.of("pose")} == set(range(N_FRAMES))
                          and len(s.of("status")) >= 1)
+    # The published message is pose_message's, whole: the loop adds or patches no field.
+    built = pose_message(Pose.invalid("-"), 0, 0, 0, capture_ns=0, latency_from="receive", detection="searched")
     for msg in sub.of("pose"):
+        assert list(msg) == list(built) and list(msg["quality"]) == list(built["quality"])
         assert msg["version"] == 1 and msg["valid"], msg["reason"]
         assert msg["quality"]["mode"] == "stereo"
         assert msg["latency_ns"] > 0 and msg["latency_from"] == "receive"
@@ -131,12 +137,17 @@ def test_both_images_corrupt_give_an_invalid_pose(sequence: tuple[Path, dict], t
     assert loop.stats.errors == 0
 
 
-def test_check_image() -> None:
+def test_each_image_is_checked_once_into_the_detectors_grey() -> None:
     ok = np.zeros((800, 1280), np.uint8)
-    assert check_image(ok, (1280, 800), "left") is None
-    assert "1280x800" in check_image(ok[:10], (1280, 800), "left")
-    assert "dtype float32" in check_image(ok.astype(np.float32), (1280, 800), "left")
-    assert "NoneType" in check_image(None, (1280, 800), "right")
+    grey, problem = grey_image(ok, (1280, 800), "left")
+    assert problem is None and grey is ok                     # already grey: no copy
+    grey, problem = grey_image(np.zeros((800, 1280, 3), np.uint8), (1280, 800), "left")
+    assert problem is None and grey is not None and grey.shape == (800, 1280) and grey.dtype == np.uint8
+    assert grey_image(ok[:10], (1280, 800), "left") == (None, "left image is 1280x10, the rig was calibrated at "
+                                                              "1280x800")
+    assert "dtype float32" in str(grey_image(ok.astype(np.float32), (1280, 800), "left")[1])
+    assert "NoneType" in str(grey_image(None, (1280, 800), "right")[1])
+    assert "shape (800, 1280, 2)" in str(grey_image(np.zeros((800, 1280, 2), np.uint8), (1280, 800), "right")[1])
 
 
 @pytest.mark.parametrize("edit, field", [

@@ -1,9 +1,10 @@
-"""The live loop: stereo source -> track (or search) the boards in left and right -> pose -> publish.
+"""The live loop's supervision: open the camera (with back-off), read frames, hand each to the frame pipeline,
+publish, report status, reload the config, stop.
 
-State lives here (the camera, the socket, the counters, the tracker); the work per frame is the pure
-functions of edgecal.detection and edgecal.pose (a full search does the right image in a second thread
-while the loop's own thread does the left one). The loop is steered from outside only through
-:meth:`LiveLoop.request_stop` and :meth:`LiveLoop.request_reload` (signal handlers call them), so a
+State lives here (the camera, the sockets, the counters, the state for the status message); the work per
+frame is edgecal.stream.frame_pipeline (check the images, track or search the boards, pose), and the
+message is built whole by edgecal.publish.messages.pose_message. The loop is steered from outside only
+through :meth:`LiveLoop.request_stop` and :meth:`LiveLoop.request_reload` (signal handlers call them), so a
 signal never interrupts a frame half-way; :meth:`LiveLoop.abort` is the deadline behind a stop request.
 """
 
@@ -14,29 +15,20 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
-import cv2
-import numpy as np
-
-from edgecal.detection.detector import detect
-from edgecal.detection.tracking import track_boards
-from edgecal.detection.types import CornerPrediction
 from edgecal.drivers.base import Source, StereoFrame
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, DeviceLost, EdgecalError, InputError, clip, exception_summary
-from edgecal.pose import Pose, estimate_pose
 from edgecal.publish import PosePublisher, pose_message, status_message
 from edgecal.publish.sinks import FrameOutput, Sink, build_sinks, close_all, fan_out
 from edgecal.stream.config import LiveConfig, PublishSettings, load_live_config
+from edgecal.stream.frame_pipeline import FramePipeline, capture_time_ns
 from edgecal.stream.notify import SystemdNotifier
 from edgecal.stream.stats import LoopStats
-from edgecal.stream.tracker import BoardTracker, confirmed_fraction
 
 log = logging.getLogger("edgecal.stream")
 
 READ_SLICE_S = 0.2          # longest blocking read: a stop request is served within about this
-CLOCK_PLAUSIBLE_NS = 60 * 10**9   # a capture stamp further than this from monotonic now is on another clock
 # On a clean stop, the last poses and the "stopping" status may take this long to leave the socket (an abort
 # after SIGTERM's grace period drops them): a subscriber learns the stream ended. Well inside TimeoutStopSec.
 CLOSE_LINGER_S = 0.25
@@ -49,45 +41,6 @@ def default_source_factory(spec: SourceSpec) -> Source:
     return open_source(spec)
 
 
-def capture_time_ns(frame: StereoFrame, now_ns: int, recorded: bool) -> tuple[int, str]:
-    """The host-monotonic time the pair was captured, and what it is based on.
-
-    Device stamps mapped to CLOCK_MONOTONIC are used as they are ("capture"). A replay's stamps are the
-    recorded ones (``recorded``), and a device clock that was not mapped is far from now; for both, the
-    time the frame reached edgecal is used instead ("receive").
-    """
-    stamp = frame.stamp_ns
-    if not recorded and 0 <= now_ns - stamp < CLOCK_PLAUSIBLE_NS:
-        return stamp, "capture"
-    return min(frame.left.recv_ns, frame.right.recv_ns), "receive"
-
-
-def check_image(image: object, size: tuple[int, int], side: str) -> str | None:
-    """Why ``image`` cannot be used (None if it can): not an array, wrong type, or not the rig's size."""
-    if not isinstance(image, np.ndarray):
-        return f"{side} image is {type(image).__name__}, not an array"
-    if image.dtype not in (np.uint8, np.uint16) or image.ndim not in (2, 3) or image.size == 0:
-        return f"{side} image has dtype {image.dtype} and shape {image.shape}"
-    w, h = size
-    if w and h and (image.shape[1], image.shape[0]) != (w, h):
-        return f"{side} image is {image.shape[1]}x{image.shape[0]}, the rig was calibrated at {w}x{h}"
-    return None
-
-
-def warm_up_image(size: tuple[int, int], cols: int, rows: int) -> np.ndarray:
-    """A grey image of ``size`` (width, height) with a slightly blurred chessboard of ``cols`` x ``rows``
-    inner corners in its middle: something for every stage of the detector to work on."""
-    w, h = size
-    square = int(max(8, min(40, w // (cols + 3), h // (rows + 3))))
-    image = np.full((h, w), 200, np.uint8)
-    x0, y0 = (w - (cols + 1) * square) // 2, (h - (rows + 1) * square) // 2
-    for r in range(rows + 1):
-        for c in range(cols + 1):
-            if (r + c) % 2 == 0:
-                image[y0 + r * square:y0 + (r + 1) * square, x0 + c * square:x0 + (c + 1) * square] = 40
-    return cv2.GaussianBlur(image, (5, 5), 1.0)
-
-
 class LiveLoop:
     """One live pose stream. ``run()`` blocks until a stop request (or the end of a finite source)."""
 
@@ -98,7 +51,7 @@ class LiveLoop:
         self.source_factory = source_factory
         self.notifier = notifier or SystemdNotifier()
         self.stats = LoopStats(time.monotonic_ns())
-        self.tracker = BoardTracker(config.target, config.cameras, config.tracking)
+        self.pipeline = pipeline_for(config)
         self.state = "starting"
         # Plain flags, not threading.Event: a signal handler that takes a lock the interrupted loop
         # already holds would deadlock.
@@ -108,12 +61,10 @@ class LiveLoop:
         self._source: Source | None = None
         self._publisher: PosePublisher | None = None
         self._sinks: list[Sink] = []                 # the outputs beside ZeroMQ (MCAP log, Foxglove)
-        self._detections: tuple[list, list] = ([], [])   # the boards of the frame in progress, for the sinks
         # The camera and the socket are used under this lock, so that abort() (another thread, when a
         # frame takes too long after SIGTERM) can release them while the loop is busy detecting.
         self._io = threading.RLock()
         self._aborted = False
-        self._pool: ThreadPoolExecutor | None = None
         self._ready_sent = False
         self._last_frame_ns = 0
         self._backoff_s = config.loop.reconnect_min_s
@@ -165,7 +116,6 @@ class LiveLoop:
     def run(self) -> int:
         """Run until stopped; returns the exit code (0 after a stop request or the end of a replay)."""
         self._publisher = open_publisher(self.config.publish)
-        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
         curve = self.config.publish.curve
         log.info("publishing on %s%s; source %s", self.config.publish.endpoint,
                  f" (CURVE, {len(curve.clients)} subscriber keys)" if curve else "", self.config.source.uri)
@@ -190,7 +140,7 @@ class LiveLoop:
                 aborted = self._aborted
                 if not aborted:
                     self._release_io(CLOSE_LINGER_S)
-            self._pool.shutdown(wait=True)
+            self.pipeline.close()
             if self._opener is not None:
                 self._opener.join(0.2)
             if self._opened is not None and self._opened[0] is not None:
@@ -205,17 +155,11 @@ class LiveLoop:
             log.info("stopped after %d frames%s", self.stats.frames, took)
 
     def warm_up(self) -> None:
-        """Run the whole per-frame path once - a full search, the verification of predicted corners - on a
-        drawn chessboard at the cameras' size, so that numba's cache loads, OpenCV's first calls and the
-        first large buffers are not paid by the first camera frame; then freeze what is loaded out of the
-        garbage collector's full collections."""
-        w, h = self.config.cameras.image_size
+        """Run the per-frame path once on a drawn chessboard (FramePipeline.warm_up: numba's cache, OpenCV's
+        first calls and the first large buffers are not paid by the first camera frame); then freeze what is
+        loaded out of the garbage collector's full collections."""
         t0 = time.monotonic()
-        board = self.config.target.boards[0]
-        image = warm_up_image((w or 640, h or 480), board.cols, board.rows)
-        for det in detect(image, self.config.target, self.config.detector):
-            moved = [CornerPrediction(self.config.target.board(det.board), det.ids, det.corners + 0.7)]
-            track_boards(image, moved, self.config.detector)
+        self.pipeline.warm_up()
         # Everything loaded so far (numba, scipy, OpenCV bindings: hundreds of thousands of objects) lives as
         # long as the process: frozen out of the collector's view, a full collection no longer walks them all,
         # which otherwise stalls one frame in a few hundred by ~60 ms.
@@ -259,7 +203,7 @@ class LiveLoop:
                 return
             self._source = source
         self._last_frame_ns = time.monotonic_ns()
-        self.tracker.reset()
+        self.pipeline.reset()
         if self.state == "camera-lost":
             log.info("camera %s reopened", self.config.source.uri)
             self.stats.reconnects += 1
@@ -388,105 +332,28 @@ class LiveLoop:
             self._send_ready(f"first frame processed; publishing on {self.config.publish.endpoint}")
         return True
 
-    def _detect(self, image: np.ndarray, problem: str | None) -> tuple[list, str | None]:
-        """Detections in one image, or none and the reason when the image is unusable."""
-        if problem is not None:
-            return [], problem
-        try:
-            return detect(image, self.config.target, self.config.detector), None
-        except InputError as exc:            # e.g. an array the detector cannot read as an image
-            return [], str(exc)
-
-    def _track(self, image: np.ndarray, predicted: list[CornerPrediction]) -> list:
-        """The predicted boards confirmed in one image (tracking; see edgecal.stream.tracker)."""
-        if not predicted:
-            return []
-        try:
-            return track_boards(image, predicted, self.config.detector)
-        except InputError:               # an image the detector cannot read: the search reports it
-            return []
-
-    def _tracked_pose(self, frame: StereoFrame) -> Pose | None:
-        """The pose from verifying the tracker's predicted corners in both images, or None when there is
-        no prediction or the result is in doubt (then the frame is searched in full)."""
-        predicted = self.tracker.predict(frame.stamp_ns)
-        if predicted is None:
-            return None
-        left_pred, right_pred = predicted
-        # One thread for both images: verification is ~6 ms of mostly Python per image, and two threads
-        # contending for the GIL (each OpenCV call hands it over and waits to get it back) were slower
-        # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
-        left_det = self._track(frame.left.image, left_pred)
-        right_det = self._track(frame.right.image, right_pred)
-        self._detections = (left_det, right_det)
-        confirmed = confirmed_fraction(left_pred + right_pred, left_det + right_det)
-        if confirmed < self.config.tracking.min_confirmed_fraction:
-            return None
-        pose = estimate_pose(left_det, right_det, self.config.target, self.config.cameras, self.config.pose)
-        # A misfit board or an invalid pose may be a tracking failure: the full search decides.
-        return pose if pose.valid and not pose.rejected else None
-
-    def _searched_pose(self, frame: StereoFrame, bad_left: str | None, bad_right: str | None) -> tuple[Pose, int]:
-        """The pose from searching both images in full, and how many images showed no board.
-
-        A corrupt image (unreadable, wrong size or type) is counted; the other camera alone still gives a
-        (mono) pose. Both corrupt: an invalid pose naming the problem.
-        """
-        cfg = self.config
-        assert self._pool is not None
-        right = self._pool.submit(self._detect, frame.right.image, bad_right)
-        left_det, bad_left = self._detect(frame.left.image, bad_left)
-        right_det, bad_right = right.result()
-        self._detections = (left_det, right_det)
-        problems = [p for p in (bad_left, bad_right) if p]
-        if problems:
-            self.stats.corrupt_frames += 1
-            self._rate_limited_error(f"corrupt frame {frame.left.seq}: {'; '.join(problems)}")
-        if len(problems) == 2:
-            return Pose.invalid(f"corrupt frame: {'; '.join(problems)}"), 0
-        failed_images = int(not left_det and not bad_left) + int(not right_det and not bad_right)
-        pose = estimate_pose(left_det, right_det, cfg.target, cfg.cameras, cfg.pose)
-        if problems and not pose.valid:
-            pose.reason = f"{pose.reason}; corrupt frame: {problems[0]}"
-        return pose, failed_images
-
     def _process(self, frame: StereoFrame) -> None:
-        """Detect, estimate and publish the pose of one stereo frame.
-
-        With a recent pose the predicted corners are verified (tracking); without one, or when the tracked
-        result is in doubt, both images are searched in full.
-        """
+        """Pose one stereo frame (edgecal.stream.frame_pipeline), count what happened, publish the message."""
         cfg = self.config
-        size = cfg.cameras.image_size
-        bad_left = check_image(frame.left.image, size, "left")
-        bad_right = check_image(frame.right.image, size, "right")
-        failed_images = 0
-        tracked = False
-        self._detections = ([], [])
-        try:
-            pose = self._tracked_pose(frame) if bad_left is None and bad_right is None else None
-            if pose is not None:
-                tracked = True
-                self.stats.tracked_frames += 1
-            else:
-                pose, failed_images = self._searched_pose(frame, bad_left, bad_right)
-            self.tracker.update(pose, frame.stamp_ns)
-        except Exception as exc:     # a bug must not kill a daemon that runs for weeks: log, count, go on
+        result = self.pipeline.process(frame)
+        if result.tracked:
+            self.stats.tracked_frames += 1
+        if result.problems:
+            self.stats.corrupt_frames += 1
+            self._rate_limited_error(f"corrupt frame {frame.left.seq}: {'; '.join(result.problems)}")
+        if result.error is not None:     # a bug: logged and counted, the daemon goes on
             self.stats.errors += 1
-            self._rate_limited_error(f"error while processing frame {frame.left.seq}: {exception_summary(exc)}",
-                                     exc_info=True)
-            pose = Pose.invalid(f"internal error: {type(exc).__name__}")
-            self.tracker.reset()
+            self._rate_limited_error(f"error while processing frame {frame.left.seq}: "
+                                     f"{exception_summary(result.error)}", exc_info=result.error)
         now = time.monotonic_ns()
-        capture_ns, _basis = capture_time_ns(frame, now, cfg.source.driver in ("replay", "mcap", "rosbag"))
-        msg = pose_message(pose, frame.left.seq, frame.stamp_ns, now, cfg.outputs.frame_id, cfg.outputs.child_frame_id)
-        msg["latency_ns"] = int(now - capture_ns)
-        msg["latency_from"] = _basis
-        msg["quality"]["detection"] = "tracked" if tracked else "searched"
-        out = FrameOutput(frame, pose, msg, self._detections, capture_ns)
+        capture_ns, basis = capture_time_ns(frame, now, cfg.source.driver in ("replay", "mcap", "rosbag"))
+        msg = pose_message(result.pose, frame.left.seq, frame.stamp_ns, now, cfg.outputs.frame_id,
+                           cfg.outputs.child_frame_id, capture_ns=capture_ns, latency_from=basis,
+                           detection=result.detection)
+        out = FrameOutput(frame, result.pose, msg, result.detections, capture_ns)
         with self._io:
             fan_out(self._all_sinks(), "frame", out)
-        self.stats.frame_done(now - capture_ns, pose.valid, failed_images)
+        self.stats.frame_done(now - capture_ns, result.pose.valid, result.failed_images)
 
     @property
     def _last_message(self) -> str:
@@ -556,7 +423,7 @@ class LiveLoop:
         old = self.config
         if self._aborted:
             return
-        tracker = BoardTracker(new.target, new.cameras, new.tracking)
+        pipeline = pipeline_for(new, self.pipeline)
         # Opened before the running ones are let go: if one fails, they all stay.
         sinks = build_sinks(new.outputs) if new.outputs != old.outputs else None
         try:
@@ -577,7 +444,7 @@ class LiveLoop:
             self._next_open_ns = 0
             self._revert_to = revert_to
         self.config = new
-        self.tracker = tracker
+        self.pipeline = pipeline
         self._backoff_s = new.loop.reconnect_min_s
 
     def _replace_publisher(self, new: PublishSettings, old: PublishSettings) -> PosePublisher:
@@ -608,12 +475,18 @@ class LiveLoop:
         except EdgecalError as exc:
             self._rate_limited_error(f"pose stream not bound: {exc}")
 
-    def _rate_limited_error(self, text: str, exc_info: bool = False) -> None:
+    def _rate_limited_error(self, text: str, exc_info: bool | BaseException = False) -> None:
         """Log at most one such error per status period (a broken camera must not flood the journal)."""
         now = time.monotonic_ns()
         if now - self._last_error_log_ns >= int(self.config.loop.status_period_s * 1e9):
             self._last_error_log_ns = now
             log.error("%s", text, exc_info=exc_info)
+
+
+def pipeline_for(config: LiveConfig, running: FramePipeline | None = None) -> FramePipeline:
+    """The frame pipeline of ``config`` (sharing the ``running`` one's worker thread, after a reload)."""
+    parts = (config.target, config.cameras, config.detector, config.pose, config.tracking)
+    return running.reconfigured(*parts) if running is not None else FramePipeline(*parts)
 
 
 def open_publisher(settings: PublishSettings) -> PosePublisher:

@@ -1,0 +1,213 @@
+"""The work on one stereo frame: check the two images, track or search the boards, estimate the pose.
+
+Everything here is per frame and knows nothing of the camera, the sockets, reloads or status: the live
+loop (edgecal.stream.loop) supervises, calls :meth:`FramePipeline.process` once per frame, then has the
+message built (edgecal.publish.messages.pose_message) and hands it to the sinks. What the pipeline carries
+from one frame to the next is the tracker's recent poses and the worker thread for the right image.
+
+Each image is checked once, when it arrives (:func:`grey_image`): the rig's size, then the detector's
+own check and conversion to 8-bit grey; tracking and the full search both work on that grey image (a
+colour frame is converted once, not once per detector call).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from edgecal.camera import StereoRig
+from edgecal.detection.detector import detect
+from edgecal.detection.params import DetectorParams
+from edgecal.detection.tracking import track_boards
+from edgecal.detection.types import CornerPrediction, Detection
+from edgecal.drivers.base import StereoFrame
+from edgecal.errors import InputError
+from edgecal.images import as_grey
+from edgecal.pose import Pose, estimate_pose
+from edgecal.pose.types import PoseSettings
+from edgecal.stream.tracker import BoardTracker, TrackingSettings, confirmed_fraction
+from edgecal.targets import Target
+
+CLOCK_PLAUSIBLE_NS = 60 * 10**9   # a capture stamp further than this from monotonic now is on another clock
+
+
+def capture_time_ns(frame: StereoFrame, now_ns: int, recorded: bool) -> tuple[int, str]:
+    """The host-monotonic time the pair was captured, and what it is based on.
+
+    Device stamps mapped to CLOCK_MONOTONIC are used as they are ("capture"). A replay's stamps are the
+    recorded ones (``recorded``), and a device clock that was not mapped is far from now; for both, the
+    time the frame reached edgecal is used instead ("receive").
+    """
+    stamp = frame.stamp_ns
+    if not recorded and 0 <= now_ns - stamp < CLOCK_PLAUSIBLE_NS:
+        return stamp, "capture"
+    return min(frame.left.recv_ns, frame.right.recv_ns), "receive"
+
+
+def grey_image(image: object, size: tuple[int, int], side: str) -> tuple[np.ndarray | None, str | None]:
+    """``image`` as the detector's 8-bit grey image, or None and why it cannot be used: not an array, not
+    the rig's size (``size`` = width, height; 0 = unknown), or a type or shape the detector does not read."""
+    if not isinstance(image, np.ndarray):
+        return None, f"{side} image is {type(image).__name__}, not an array"
+    w, h = size
+    if w and h and image.ndim >= 2 and (image.shape[1], image.shape[0]) != (w, h):
+        return None, f"{side} image is {image.shape[1]}x{image.shape[0]}, the rig was calibrated at {w}x{h}"
+    try:
+        return as_grey(image, f"{side} image"), None
+    except InputError as exc:
+        return None, str(exc)
+
+
+def warm_up_image(size: tuple[int, int], cols: int, rows: int) -> np.ndarray:
+    """A grey image of ``size`` (width, height) with a slightly blurred chessboard of ``cols`` x ``rows``
+    inner corners in its middle: something for every stage of the detector to work on."""
+    w, h = size
+    square = int(max(8, min(40, w // (cols + 3), h // (rows + 3))))
+    image = np.full((h, w), 200, np.uint8)
+    x0, y0 = (w - (cols + 1) * square) // 2, (h - (rows + 1) * square) // 2
+    for r in range(rows + 1):
+        for c in range(cols + 1):
+            if (r + c) % 2 == 0:
+                image[y0 + r * square:y0 + (r + 1) * square, x0 + c * square:x0 + (c + 1) * square] = 40
+    return cv2.GaussianBlur(image, (5, 5), 1.0)
+
+
+@dataclass
+class FrameResult:
+    """What the pipeline made of one stereo frame.
+
+    detections:    the boards found (tracked or searched) in the left and right image.
+    tracked:       True when the predicted corners were verified; False when the images were searched.
+    failed_images: readable images (0-2) in which no board was found.
+    problems:      why an image could not be used (a corrupt frame), one line per image.
+    error:         an unexpected exception (a bug) met on the way; the pose is then invalid.
+    """
+
+    pose: Pose
+    detections: tuple[list[Detection], list[Detection]] = field(default_factory=lambda: ([], []))
+    tracked: bool = False
+    failed_images: int = 0
+    problems: list[str] = field(default_factory=list)
+    error: Exception | None = None
+
+    @property
+    def detection(self) -> str:
+        """How the boards were found: "tracked" or "searched" (the pose message's quality.detection)."""
+        return "tracked" if self.tracked else "searched"
+
+
+class FramePipeline:
+    """Poses from stereo frames, one call per frame. The target, rig, detector, pose and tracking settings are
+    fixed for its lifetime (a reload makes a new one with :meth:`reconfigured`)."""
+
+    def __init__(self, target: Target, cameras: StereoRig, detector: DetectorParams | None, pose: PoseSettings,
+                 tracking: TrackingSettings, pool: ThreadPoolExecutor | None = None) -> None:
+        self.target = target
+        self.cameras = cameras
+        self.detector = detector
+        self.pose_settings = pose
+        self.tracking = tracking
+        self.tracker = BoardTracker(target, cameras, tracking)
+        # A full search does the right image in this thread while the caller's thread does the left one
+        # (no thread is started before the first search).
+        self._pool = pool or ThreadPoolExecutor(max_workers=1, thread_name_prefix="detect-right")
+
+    def reconfigured(self, target: Target, cameras: StereoRig, detector: DetectorParams | None,
+                     pose: PoseSettings, tracking: TrackingSettings) -> FramePipeline:
+        """A pipeline with other settings that shares this one's worker thread (and starts without motion)."""
+        return FramePipeline(target, cameras, detector, pose, tracking, self._pool)
+
+    def close(self) -> None:
+        """Stop the worker thread (waits for a search in progress)."""
+        self._pool.shutdown(wait=True)
+
+    def reset(self) -> None:
+        """Forget the motion (a reopened camera): the next frame is searched."""
+        self.tracker.reset()
+
+    def warm_up(self) -> None:
+        """Run the whole per-frame path once - a full search, the verification of predicted corners - on a
+        drawn chessboard at the cameras' size, so that numba's cache loads, OpenCV's first calls and the
+        first large buffers are not paid by the first camera frame."""
+        w, h = self.cameras.image_size
+        board = self.target.boards[0]
+        image = warm_up_image((w or 640, h or 480), board.cols, board.rows)
+        for det in detect(image, self.target, self.detector):
+            moved = [CornerPrediction(self.target.board(det.board), det.ids, det.corners + 0.7)]
+            track_boards(image, moved, self.detector)
+
+    def process(self, frame: StereoFrame) -> FrameResult:
+        """The pose of one stereo frame.
+
+        With a recent pose the predicted corners are verified (tracking); without one, or when the tracked
+        result is in doubt, both images are searched in full. A corrupt image (unreadable, wrong size or
+        type) is reported in ``problems``; the other camera alone still gives a (mono) pose. An unexpected
+        exception is caught (a daemon must not die of one frame): an invalid pose and ``error``.
+        """
+        size = self.cameras.image_size
+        left, bad_left = grey_image(frame.left.image, size, "left")
+        right, bad_right = grey_image(frame.right.image, size, "right")
+        result = FrameResult(Pose.invalid("not processed"))
+        try:
+            pose = None
+            if left is not None and right is not None:
+                pose = self._tracked_pose(frame.stamp_ns, left, right, result)
+            if pose is not None:
+                result.tracked = True
+            else:
+                pose = self._searched_pose(left, right, bad_left, bad_right, result)
+            result.pose = pose
+            self.tracker.update(pose, frame.stamp_ns)
+        except Exception as exc:  # noqa: BLE001 - a bug must not kill a daemon that runs for weeks
+            result.pose = Pose.invalid(f"internal error: {type(exc).__name__}")
+            result.error = exc
+            result.tracked = False
+            result.failed_images = 0
+            self.tracker.reset()
+        return result
+
+    def _track(self, image: np.ndarray, predicted: list[CornerPrediction]) -> list[Detection]:
+        """The predicted boards confirmed in one image (tracking; see edgecal.stream.tracker)."""
+        return track_boards(image, predicted, self.detector) if predicted else []
+
+    def _tracked_pose(self, stamp_ns: int, left: np.ndarray, right: np.ndarray, result: FrameResult) -> Pose | None:
+        """The pose from verifying the tracker's predicted corners in both images, or None when there is
+        no prediction or the result is in doubt (then the frame is searched in full)."""
+        predicted = self.tracker.predict(stamp_ns)
+        if predicted is None:
+            return None
+        left_pred, right_pred = predicted
+        # One thread for both images: verification is ~6 ms of mostly Python per image, and two threads
+        # contending for the GIL (each OpenCV call hands it over and waits to get it back) were slower
+        # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
+        left_det = self._track(left, left_pred)
+        right_det = self._track(right, right_pred)
+        result.detections = (left_det, right_det)
+        if confirmed_fraction(left_pred + right_pred, left_det + right_det) < self.tracking.min_confirmed_fraction:
+            return None
+        pose = estimate_pose(left_det, right_det, self.target, self.cameras, self.pose_settings)
+        # A misfit board or an invalid pose may be a tracking failure: the full search decides.
+        return pose if pose.valid and not pose.rejected else None
+
+    def _detect(self, image: np.ndarray | None) -> list[Detection]:
+        """The boards searched in one grey image (none for an image that could not be used)."""
+        return detect(image, self.target, self.detector) if image is not None else []
+
+    def _searched_pose(self, left: np.ndarray | None, right: np.ndarray | None, bad_left: str | None,
+                       bad_right: str | None, result: FrameResult) -> Pose:
+        """The pose from searching both images in full (the right one in the worker thread)."""
+        right_job = self._pool.submit(self._detect, right)
+        left_det = self._detect(left)
+        right_det = right_job.result()
+        result.detections = (left_det, right_det)
+        result.problems = [p for p in (bad_left, bad_right) if p]
+        if len(result.problems) == 2:
+            return Pose.invalid(f"corrupt frame: {'; '.join(result.problems)}")
+        result.failed_images = int(not left_det and left is not None) + int(not right_det and right is not None)
+        pose = estimate_pose(left_det, right_det, self.target, self.cameras, self.pose_settings)
+        if result.problems and not pose.valid:
+            pose.reason = f"{pose.reason}; corrupt frame: {result.problems[0]}"
+        return pose
