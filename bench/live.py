@@ -46,10 +46,10 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
-import zmq  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import edgecal  # noqa: E402
+from edgecal.publish.subscriber import MessageCollector  # noqa: E402
 from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.stream import LiveLoop, load_live_config  # noqa: E402
 
@@ -99,34 +99,6 @@ def write_rig(rig: dict, path: Path) -> None:
     fs.release()
 
 
-class Collector:
-    """A real ZeroMQ subscriber in its own thread."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.ctx = zmq.Context()
-        self.sock = self.ctx.socket(zmq.SUB)
-        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
-        self.sock.setsockopt(zmq.LINGER, 0)
-        self.sock.connect(endpoint)
-        self.messages: list[dict] = []
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        while not self.stop.is_set():
-            if self.sock.poll(50):
-                self.messages.append(json.loads(self.sock.recv_multipart()[1]))
-
-    def close(self) -> list[dict]:
-        time.sleep(0.2)
-        self.stop.set()
-        self.thread.join()
-        self.sock.close()
-        self.ctx.term()
-        return self.messages
-
-
 def run_loop(folder: Path, out: Path, realtime: bool, endpoint: str, tracking: bool = True,
              preload: bool = True, covariance_scale: str = "model") -> dict:
     """One pass of the live loop over the sequence; returns the subscriber's messages, the loop's counters
@@ -141,7 +113,7 @@ def run_loop(folder: Path, out: Path, realtime: bool, endpoint: str, tracking: b
         "pose": {"covariance_scale": covariance_scale},
         "loop": {"stop_at_end": True, "status_period_s": 1.0},
     }))
-    sub = Collector(endpoint)
+    sub = MessageCollector(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     loop.warm_up()                       # JIT before the clock starts (run() does it again, cached)
     time.sleep(0.3)                      # let the subscription reach the publisher
@@ -162,7 +134,7 @@ def run_loop(folder: Path, out: Path, realtime: bool, endpoint: str, tracking: b
     done.set()
     watcher.join()
     t0, r0, first = start[0]
-    msgs = sub.close()
+    msgs = sub.close(drain_s=0.2)
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     return {"messages": msgs, "wall_s": t1 - t0, "cpu_s": cpu, "stats": loop.stats,
             "timed_frames": loop.stats.frames - first}

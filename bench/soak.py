@@ -31,46 +31,26 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
-import zmq  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from live import write_rig  # noqa: E402
 
+from edgecal.publish.subscriber import MessageCollector  # noqa: E402
 from edgecal.runtime import tune_allocator  # noqa: E402
 from edgecal.stream import LiveLoop, load_live_config  # noqa: E402
 
 
-class CountingSubscriber:
-    """A real ZeroMQ subscriber that parses every message and keeps only counts (it shares this
-    process's memory with the loop, so it must not grow itself)."""
+class MessageCounter:
+    """Counts the messages a subscriber receives and how many are valid poses, keeping nothing else (it shares
+    this process's memory with the loop, so it must not grow itself)."""
 
-    def __init__(self, endpoint: str) -> None:
-        self.ctx = zmq.Context()
-        self.sock = self.ctx.socket(zmq.SUB)
-        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
-        self.sock.setsockopt(zmq.LINGER, 0)
-        self.sock.connect(endpoint)
+    def __init__(self) -> None:
         self.received = 0
         self.valid = 0
-        self.stop = threading.Event()
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
 
-    def _run(self) -> None:
-        import json
-        while not self.stop.is_set():
-            if self.sock.poll(50):
-                msg = json.loads(self.sock.recv_multipart()[1])
-                self.received += 1
-                self.valid += bool(msg.get("valid"))
-
-    def close(self) -> int:
-        time.sleep(0.2)
-        self.stop.set()
-        self.thread.join()
-        self.sock.close()
-        self.ctx.term()
-        return self.received
+    def __call__(self, msg: dict) -> None:
+        self.received += 1
+        self.valid += bool(msg.get("valid"))
 
 
 def rss_kb() -> int:
@@ -138,7 +118,8 @@ def main() -> int:
     timer.cancel()
     timer.join()
     base_threads, base_fds = counts()
-    sub = CountingSubscriber(args.endpoint)
+    counter = MessageCounter()
+    sub = MessageCollector(args.endpoint, on_message=counter)
     loop = LiveLoop(load_live_config(cfg))
     samples: list[tuple[int, float, int, int, int]] = []
 
@@ -155,7 +136,7 @@ def main() -> int:
                 th, fds = counts()
                 samples.append((n, time.monotonic() - t0, rss_kb(), th, fds))
                 print(f"{n:7d} frames {samples[-1][1]:7.0f} s  RSS {samples[-1][2] / 1024:7.1f} MB  threads {th}  "
-                      f"fds {fds}  received {sub.received}", flush=True)
+                      f"fds {fds}  received {counter.received}", flush=True)
                 next_sample += args.sample
             if next_reload > 0 and n >= next_reload:
                 loop.request_reload()
@@ -168,7 +149,8 @@ def main() -> int:
     watcher.start()
     loop.run()
     watcher.join()
-    received = sub.close()
+    sub.close(drain_s=0.2)
+    received = counter.received
     end_threads, end_fds = counts()
     extra = [t.name for t in threading.enumerate() if t is not threading.main_thread()]
     half = [s for s in samples if s[0] >= args.frames // 2] or samples[-2:]

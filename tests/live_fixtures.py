@@ -1,5 +1,6 @@
-"""Shared by the live-loop and daemon tests: a rendered robot sequence, its rig.yaml and a config to run it, a
-subscriber, the notify socket, the daemon process, and inputs a reload must survive."""
+"""Shared by the live-loop and daemon tests: a rendered robot sequence, its rig.yaml and a config to run it, the
+loop run against a subscriber (edgecal.publish.subscriber), the notify socket, the daemon process, and inputs a
+reload must survive."""
 
 from __future__ import annotations
 
@@ -17,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
-import zmq
 from scipy.spatial.transform import Rotation
 
+from edgecal.publish.subscriber import MessageCollector
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.synth import scenes, writer
 
@@ -87,39 +88,6 @@ def write_config(path: Path, sequence: Path, endpoint: str, *, source_extra: dic
     return path
 
 
-class Subscriber:
-    """A SUB socket collecting every message in a background thread."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.ctx = zmq.Context()
-        self.sock = self.ctx.socket(zmq.SUB)
-        self.sock.setsockopt(zmq.LINGER, 0)
-        self.sock.setsockopt(zmq.SUBSCRIBE, b"")
-        self.sock.connect(endpoint)
-        self.messages: list[dict] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self.sock.poll(50):
-                _topic, body = self.sock.recv_multipart()
-                self.messages.append(json.loads(body))
-
-    def of(self, kind: str) -> list[dict]:
-        return [m for m in list(self.messages) if m["type"] == kind]
-
-    def wait_for(self, condition, timeout_s: float = 20.0) -> bool:
-        return wait_until(condition, timeout_s)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.sock.close()
-        self.ctx.term()
-
-
 def run_in_thread(loop: LiveLoop) -> tuple[threading.Thread, list]:
     """Run ``loop`` in a thread; the list receives its exit code."""
     result: list = []
@@ -128,10 +96,10 @@ def run_in_thread(loop: LiveLoop) -> tuple[threading.Thread, list]:
     return th, result
 
 
-def run_loop_until(config: Path, endpoint: str, done: Callable[[Subscriber], bool]) -> Subscriber:
+def run_loop_until(config: Path, endpoint: str, done: Callable[[MessageCollector], bool]) -> MessageCollector:
     """Run the LiveLoop of ``config`` in a thread, a subscriber on ``endpoint``, until ``done(subscriber)``
     (AssertionError after 20 s), then stop it: it must end with 0. The closed subscriber holds the messages."""
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     loop = LiveLoop(load_live_config(config))
     th, result = run_in_thread(loop)
     try:
@@ -188,7 +156,7 @@ def start_daemon(config: Path, notify: NotifySocket, log: Path) -> subprocess.Po
                             stdout=log.open("wb"), stderr=subprocess.STDOUT)
 
 
-def end_daemon(proc: subprocess.Popen, *listeners: Subscriber | NotifySocket) -> None:
+def end_daemon(proc: subprocess.Popen, *listeners: MessageCollector | NotifySocket) -> None:
     """A test's teardown: kill the daemon if the test left it running, then close its listeners."""
     if proc.poll() is None:
         proc.kill()

@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 import yaml
 
+from edgecal.publish.subscriber import MessageCollector
+
 from .live_fixtures import (
     NotifySocket,
-    Subscriber,
     end_daemon,
     free_endpoint,
     render_robot,
@@ -46,7 +47,7 @@ def test_notify_reload_and_sigterm(sequence: Path, tmp_path: Path) -> None:
 
 
 def _run_daemon(cfg: Path, good: dict, notify: NotifySocket, endpoint: str, tmp_path: Path) -> None:
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     log = tmp_path / "run.log"
     proc = start_daemon(cfg, notify, log)
     try:
@@ -136,7 +137,7 @@ def test_ready_while_the_camera_is_absent_at_boot(sequence: Path, tmp_path: Path
                                 "right": {"uri": "v4l2:/dev/video-edgecal-absent1"}}}
     cfg.write_text(yaml.safe_dump(doc))
     notify = NotifySocket(tmp_path / "notify.sock")
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     log = tmp_path / "run.log"
     proc = start_daemon(cfg, notify, log)
     try:

@@ -15,8 +15,9 @@ import yaml
 
 from edgecal.config import packaged_config_path
 from edgecal.errors import MESSAGE_MAX_CHARS
+from edgecal.publish.subscriber import MessageCollector
 
-from .live_fixtures import ALIAS_BOMB, NotifySocket, Subscriber, bad_rigs, free_endpoint, render_robot, start_daemon
+from .live_fixtures import ALIAS_BOMB, NotifySocket, bad_rigs, free_endpoint, render_robot, start_daemon
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +42,7 @@ class Daemon:
     def __init__(self, cfg: Path, doc: dict, tmp_path: Path) -> None:
         self.cfg, self.endpoint = cfg, doc["publish"]["endpoint"]
         cfg.write_text(yaml.safe_dump(doc))
-        self.sub = Subscriber(self.endpoint)
+        self.sub = MessageCollector(self.endpoint)
         self.notify = NotifySocket(tmp_path / "notify.sock")
         self.log = tmp_path / "run.log"
         self.proc = start_daemon(cfg, self.notify, self.log)

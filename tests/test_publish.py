@@ -10,7 +10,7 @@ import pytest
 import zmq
 
 from edgecal.commands import listen
-from edgecal.errors import ConfigError
+from edgecal.errors import ConfigError, InputError
 from edgecal.pose import Pose
 from edgecal.publish import (
     PosePublisher,
@@ -21,6 +21,7 @@ from edgecal.publish import (
     pose_message,
     status_message,
 )
+from edgecal.publish.subscriber import MessageCollector, PoseSubscriber
 
 
 def run_listen(argv: list[str]) -> int:
@@ -98,20 +99,12 @@ def test_endpoint_must_be_local_unless_allowed() -> None:
 
 def test_publisher_never_blocks_on_a_subscriber_that_stops_reading() -> None:
     endpoint = free_endpoint()
-    ctx = zmq.Context()
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.RCVHWM, 1)
-    sub.setsockopt(zmq.RCVBUF, 4096)
-    sub.setsockopt(zmq.SUBSCRIBE, b"")
     body = {"filler": "x" * 4000}
-    with PosePublisher(endpoint, hwm=4) as pub:
-        sub.connect(endpoint)
+    with PosePublisher(endpoint, hwm=4) as pub, PoseSubscriber(endpoint, receive_hwm=1, receive_buffer=4096) as sub:
         deadline = time.monotonic() + 5
-        while not sub.poll(10):                 # wait until the subscription has reached the publisher
+        while sub.receive_frames(0.01) is None:   # wait until the subscription has reached the publisher
             pub.send_status(body)
             assert time.monotonic() < deadline
-        sub.recv_multipart()
         # The subscriber now stops reading. 20,000 messages of 4 kB (80 MB) overflow every buffer:
         # a blocking send would hang here; a non-blocking one drops and returns.
         t0 = time.monotonic()
@@ -121,12 +114,9 @@ def test_publisher_never_blocks_on_a_subscriber_that_stops_reading() -> None:
         assert results.count(False) == pub.send_failures
         # The subscriber wakes up: it gets at most a few buffers' worth, the rest were dropped for it.
         received = 0
-        while sub.poll(200):
-            sub.recv_multipart()
+        while sub.receive_frames(0.2) is not None:
             received += 1
         assert received < 20_000 // 2
-    sub.close(linger=0)
-    ctx.term()
 
 
 def test_bind_to_a_taken_port_is_a_publish_error() -> None:
@@ -211,12 +201,7 @@ def test_connections_beyond_max_connections_are_shut_and_the_watcher_ends_with_t
     subs = []
     with PosePublisher(endpoint, max_connections=2) as pub:
         assert any(t.name == "publish-connections" for t in threading.enumerate())
-        for _ in range(5):
-            s = ctx.socket(zmq.SUB)
-            s.setsockopt(zmq.LINGER, 0)
-            s.setsockopt(zmq.SUBSCRIBE, b"")
-            s.connect(endpoint)
-            subs.append(s)
+        subs = [PoseSubscriber(endpoint, context=ctx) for _ in range(5)]
         deadline = time.monotonic() + 10
         while pub.refused_connections < 3 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -224,10 +209,33 @@ def test_connections_beyond_max_connections_are_shut_and_the_watcher_ends_with_t
         time.sleep(0.5)                        # the two held ones have subscribed by now
         for _ in range(20):
             pub.send_status({"n": 1})
-        receiving = sum(1 for s in subs if s.poll(500))
+        receiving = sum(1 for s in subs if s.receive_frames(0.5) is not None)
         assert receiving == 2
     # close() stops the thread that watched the connections (it ends on ZeroMQ's MONITOR_STOPPED event)
     assert not any(t.name == "publish-connections" and t.is_alive() for t in threading.enumerate())
     for s in subs:
         s.close()
     ctx.term()
+
+
+def test_subscriber_takes_only_its_topics_and_a_collector_keeps_what_was_queued_at_close() -> None:
+    endpoint = free_endpoint()
+    with pytest.raises(InputError, match="not a ZeroMQ endpoint"):
+        PoseSubscriber("tcp://no-port-here")
+    with PosePublisher(endpoint, hwm=100) as pub, PoseSubscriber(endpoint, ("pose",)) as sub:
+        collector = MessageCollector(endpoint)
+        deadline = time.monotonic() + 5
+        while sub.receive(0.01) is None:               # until both subscriptions have reached the publisher
+            pub.send_pose({"type": "pose", "seq": -1})
+            assert time.monotonic() < deadline
+        assert collector.wait_for(lambda: bool(collector.of("pose")), 5)
+        pub.send_status({"type": "status", "n": 1})    # not a topic this subscriber took
+        for seq in range(3):
+            pub.send_pose({"type": "pose", "seq": seq})
+        seqs = []
+        while (msg := sub.receive(0.5)) is not None:
+            seqs.append(msg["seq"])
+        assert [seq for seq in seqs if seq >= 0] == [0, 1, 2]      # the status was not taken
+        messages = collector.close(drain_s=0.2)
+    assert [m.get("seq", "status") for m in messages if m.get("seq") != -1] == ["status", 0, 1, 2]
+    assert not any(t.name == "subscriber" and t.is_alive() for t in threading.enumerate())

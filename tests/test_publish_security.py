@@ -20,9 +20,10 @@ import zmq
 
 from edgecal.cli import main
 from edgecal.errors import ConfigError
+from edgecal.publish.subscriber import MessageCollector, PoseSubscriber
 from edgecal.stream import LiveLoop, load_live_config
 
-from .live_fixtures import Subscriber, free_endpoint, render_robot, wait_until, write_config
+from .live_fixtures import free_endpoint, render_robot, wait_until, write_config
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +67,7 @@ def test_curve_stream_lets_in_known_subscribers_only(robot: Path, keys: Path, tm
     loop = LiveLoop(load_live_config(curve_config(tmp_path / "live.yaml", robot, endpoint, keys)))
     th = threading.Thread(target=loop.run)
     th.start()
-    keyless = Subscriber(endpoint)
+    keyless = MessageCollector(endpoint)
     try:
         # The allowed key: poses arrive, decrypted.
         assert main(["listen", endpoint, "--key", str(keys / "laptop.key_secret"), "--server-key",
@@ -151,7 +152,7 @@ def test_idle_connections_cannot_starve_a_subscriber(robot: Path, tmp_path: Path
     flood: list[socket.socket] = []
     sub = None
     try:
-        first = Subscriber(endpoint)
+        first = MessageCollector(endpoint)
         assert first.wait_for(lambda: len(first.of("pose")) >= 1, 90), log.read_text()
         first.close()
         for i in range(FLOOD):          # 250 a second: the daemon accepts them all (none wait in the backlog)
@@ -164,7 +165,7 @@ def test_idle_connections_cannot_starve_a_subscriber(robot: Path, tmp_path: Path
             flood.append(c)
             if i % 50 == 49:
                 time.sleep(0.2)
-        sub = Subscriber(endpoint)           # while the flood is held open
+        sub = MessageCollector(endpoint)  # while the flood is held open
         assert sub.wait_for(lambda: len(sub.of("pose")) >= 3, 20), log.read_text()[-2000:]
         assert all(m["valid"] for m in sub.of("pose"))
         # Once the handshake timeout has passed, the idle connections are gone from the daemon.
@@ -205,19 +206,14 @@ def test_subscribers_that_complete_the_handshake_cannot_take_the_descriptors(rob
     proc = _start_daemon_with_1024_fds(cfg, log)
     ctx = zmq.Context()
     ctx.MAX_SOCKETS = ZMTP_FLOOD + 100
-    flood: list[zmq.Socket] = []
-    first = Subscriber(endpoint)
+    flood: list[PoseSubscriber] = []
+    first = MessageCollector(endpoint)
     try:
         assert first.wait_for(lambda: len(first.of("pose")) >= 1, 90), log.read_text()
         for i in range(ZMTP_FLOOD):
-            s = ctx.socket(zmq.SUB)
-            s.setsockopt(zmq.LINGER, 0)
             # A refused one comes back after 1 s (ZeroMQ's default is 0.1 s: 11,000 reconnects a second, which
             # the daemon's watcher thread does not outpace on this shared 2-core machine; README, "Pose stream").
-            s.setsockopt(zmq.RECONNECT_IVL, 1000)
-            s.setsockopt(zmq.SUBSCRIBE, b"")
-            s.connect(endpoint)
-            flood.append(s)
+            flood.append(PoseSubscriber(endpoint, context=ctx, reconnect_interval_s=1.0))
             if i % 100 == 99:
                 time.sleep(0.1)
 
@@ -246,7 +242,7 @@ def test_subscribers_that_complete_the_handshake_cannot_take_the_descriptors(rob
         for s in flood:
             s.close()
         flood.clear()
-        late = Subscriber(endpoint)           # the flood has gone: a newcomer gets in again
+        late = MessageCollector(endpoint)  # the flood has gone: a newcomer gets in again
         try:
             assert late.wait_for(lambda: len(late.of("pose")) >= 2, 20), log.read_text()[-2000:]
         finally:

@@ -11,12 +11,12 @@ import pytest
 from edgecal.errors import ConfigError
 from edgecal.pose import Pose
 from edgecal.publish import pose_message
+from edgecal.publish.subscriber import MessageCollector
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.frame_pipeline import grey_image
 from edgecal.stream.loop import default_source_factory
 
 from .live_fixtures import (
-    Subscriber,
     free_endpoint,
     pose_errors,
     render_robot,
@@ -83,7 +83,7 @@ def test_loop_survives_corrupt_frames(sequence: tuple[Path, dict], tmp_path: Pat
     doc = yaml.safe_load(cfg.read_text())
     doc["publish"]["hwm"] = 100         # the few messages of this run are never dropped at the send queue
     cfg.write_text(yaml.safe_dump(doc))
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
 
     def open_when_subscribed(spec):
         # The loop publishes status while its source opens: once one has arrived, the subscription is in
@@ -120,7 +120,7 @@ def test_both_images_corrupt_give_an_invalid_pose(sequence: tuple[Path, dict], t
     (bad / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", bad, endpoint, source_extra={"loop": True, "latest_only": False})
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     th, _ = run_in_thread(loop)
     try:
@@ -198,7 +198,7 @@ def test_reload_moves_the_endpoint_only_if_it_can_bind(sequence: tuple[Path, dic
     first, taken, second = free_endpoint(), free_endpoint(), free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, first, source_extra={"loop": True})
     doc = yaml.safe_load(cfg.read_text())
-    sub1, sub2 = Subscriber(first), Subscriber(second)
+    sub1, sub2 = MessageCollector(first), MessageCollector(second)
     blocker = PosePublisher(taken)
     loop = LiveLoop(load_live_config(cfg))
     th, _ = run_in_thread(loop)
@@ -228,7 +228,7 @@ def test_abort_releases_camera_and_socket_while_a_frame_is_in_flight(sequence: t
     folder, _ = sequence
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, endpoint, source_extra={"loop": True})
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     th, result = run_in_thread(loop)
     try:

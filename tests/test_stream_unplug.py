@@ -11,11 +11,12 @@ import yaml
 
 from edgecal.drivers.base import Source, StereoSource
 from edgecal.errors import DeviceLost
+from edgecal.publish.subscriber import MessageCollector
 from edgecal.stream import LiveLoop, load_live_config
 from edgecal.stream.loop import default_source_factory
 
 from .aravis_fake import FakeCamera
-from .live_fixtures import Subscriber, free_endpoint, render_robot, write_config, write_rig_yaml
+from .live_fixtures import free_endpoint, render_robot, write_config, write_rig_yaml
 
 
 def small_rig(path: Path) -> Path:
@@ -39,7 +40,7 @@ def test_camera_unplug_and_return(gv_lock: None, tmp_path: Path) -> None:
         "loop": {"status_period_s": 0.2, "camera_lost_after_s": 0.5, "reconnect_min_s": 0.2, "reconnect_max_s": 0.5},
     }))
     fake = FakeCamera()
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     loop = LiveLoop(load_live_config(cfg))
     th = threading.Thread(target=loop.run)
     th.start()
@@ -103,7 +104,7 @@ def test_a_lost_camera_is_reopened_at_once_not_after_camera_lost_after_s(tmp_pat
                        source_extra={"pace": "fast", "loop": True, "latest_only": False},
                        loop={"camera_lost_after_s": 60, "reconnect_min_s": 1.0, "status_period_s": 0.2})
     _UnplugsOnce.opened = 0
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     loop = LiveLoop(load_live_config(cfg), source_factory=lambda spec: _UnplugsOnce(default_source_factory(spec), 3))
     th = threading.Thread(target=loop.run)
     th.start()

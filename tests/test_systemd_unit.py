@@ -108,7 +108,9 @@ def test_daemon_runs_under_the_system_call_allow_list(tmp_path: Path) -> None:
     seccomp = pytest.importorskip("pyseccomp")
     import signal
 
-    from .live_fixtures import NotifySocket, Subscriber, end_daemon, free_endpoint, render_robot, write_config
+    from edgecal.publish.subscriber import MessageCollector
+
+    from .live_fixtures import NotifySocket, end_daemon, free_endpoint, render_robot, write_config
 
     allowed = system_service_syscalls()
     assert "mprotect" in allowed and "ioctl" in allowed and len(allowed) > 300
@@ -133,7 +135,7 @@ def test_daemon_runs_under_the_system_call_allow_list(tmp_path: Path) -> None:
     endpoint = free_endpoint()
     cfg = write_config(tmp_path / "live.yaml", folder, endpoint, source_extra={"loop": True, "preload": True})
     notify = NotifySocket(tmp_path / "notify.sock")
-    sub = Subscriber(endpoint)
+    sub = MessageCollector(endpoint)
     log = tmp_path / "run.log"
     env = {**os.environ, "NOTIFY_SOCKET": notify.path, "NUMBA_NUM_THREADS": "1",
            "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}      # a cold cache: numba compiles under the filter

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import threading
 import time
 from pathlib import Path
 
@@ -137,8 +136,7 @@ def render_robot(out: Path, seed: int, frames: int) -> None:
 
 def stream(out: Path) -> tuple[list[dict], float]:
     """Run the live loop once over the replay (every frame, in order) with a subscriber; its pose messages."""
-    import zmq
-
+    from edgecal.publish.subscriber import MessageCollector
     from edgecal.stream import LiveLoop, load_live_config
 
     cfg = out / "live.yaml"
@@ -150,31 +148,13 @@ def stream(out: Path) -> tuple[list[dict], float]:
         "loop": {"stop_at_end": True},
     }, sort_keys=False).encode("utf-8"))
     loop = LiveLoop(load_live_config(cfg))
-    ctx = zmq.Context()
-    sub = ctx.socket(zmq.SUB)
-    sub.setsockopt(zmq.LINGER, 0)
-    sub.setsockopt(zmq.SUBSCRIBE, b"pose")
-    sub.connect(ENDPOINT)
-    messages: list[dict] = []
-    done = threading.Event()
-
-    def receive() -> None:
-        while not done.is_set() or sub.poll(0):
-            if sub.poll(50):
-                messages.append(json.loads(sub.recv_multipart()[1]))
-
-    th = threading.Thread(target=receive)
-    th.start()
+    sub = MessageCollector(ENDPOINT, ("pose",))
     t0 = time.monotonic()
     try:
         loop.run()
     finally:
         elapsed = time.monotonic() - t0
-        time.sleep(0.3)
-        done.set()
-        th.join()
-        sub.close()
-        ctx.term()
+        messages = sub.close(drain_s=0.3)
     return messages, loop.stats.frames / max(elapsed, 1e-9)
 
 

@@ -1,7 +1,8 @@
 """``edgecal listen ENDPOINT``: print the pose stream of a running ``edgecal run``.
 
-Also the example for writing your own subscriber: a ZeroMQ SUB socket, connect, subscribe to the
-topics you want, and parse the second frame of each message as JSON (schema in README.md, "Pose stream").
+Subscribes through edgecal.publish.subscriber.PoseSubscriber (the example for writing your own subscriber: a
+ZeroMQ SUB socket, connected and subscribed to the topics you want; the second frame of each message is JSON,
+schema in README.md, "Pose stream").
 A stream bound beyond the loopback interface is CURVE-secured: give this subscriber's key pair (--key) and
 the publisher's public key (--server-key); the publisher must hold this subscriber's public key.
 """
@@ -13,12 +14,9 @@ import json
 import sys
 import time
 
-import zmq
-
 from edgecal.errors import QUOTE_MAX_CHARS, InputError, quote
 from edgecal.publish.curve import load_client_keys
-
-TOPICS = ("pose", "status")
+from edgecal.publish.subscriber import TOPICS, PoseSubscriber, parse_message
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -37,18 +35,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--server-key", metavar="SERVER.key",
                    help="the publisher's public key file (with --key)")
     return p
-
-
-def parse_message(frames: list[bytes]) -> dict | None:
-    """The JSON object of one ``[topic, body]`` message; None for anything else (wrong frame count, not UTF-8,
-    not JSON, not an object)."""
-    if len(frames) != 2:
-        return None
-    try:
-        msg = json.loads(frames[1].decode("utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError):
-        return None
-    return msg if isinstance(msg, dict) else None
 
 
 def describe_message(msg: dict) -> str:
@@ -88,34 +74,18 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--key and --server-key go together: this subscriber's NAME.key_secret and the "
                              "publisher's public key file")
         keys = load_client_keys(args.key, args.server_key)
-    ctx = zmq.Context()
-    sock = ctx.socket(zmq.SUB)
-    sock.setsockopt(zmq.LINGER, 0)
-    if keys is not None:
-        sock.curve_secretkey = keys.secret
-        sock.curve_publickey = keys.public
-        sock.curve_serverkey = keys.server_public
-    try:
-        sock.connect(args.endpoint)
-    except zmq.ZMQError as exc:
-        sock.close()
-        ctx.term()
-        raise InputError(f"{args.endpoint}: not a ZeroMQ endpoint ({exc}); e.g. tcp://127.0.0.1:5560") from None
-    for topic in args.topic or TOPICS:
-        sock.setsockopt(zmq.SUBSCRIBE, topic.encode())
-    poller = zmq.Poller()
-    poller.register(sock, zmq.POLLIN)
+    sub = PoseSubscriber(args.endpoint, args.topic or TOPICS, keys=keys)
     received = 0
     try:
         last = time.monotonic()
         while args.count <= 0 or received < args.count:
-            if not poller.poll(200):
+            frames = sub.receive_frames(0.2)
+            if frames is None:
                 if args.timeout > 0 and time.monotonic() - last > args.timeout:
                     print(f"edgecal listen: no message from {args.endpoint} for {args.timeout:g} s",
                           file=sys.stderr)
                     return 1
                 continue
-            frames = sock.recv_multipart()
             last = time.monotonic()
             msg = parse_message(frames)
             if msg is None:
@@ -127,6 +97,5 @@ def run(args: argparse.Namespace) -> int:
             print(json.dumps(msg) if args.json else describe_message(msg), flush=True)
             received += 1
     finally:
-        sock.close(linger=0)
-        ctx.term()
+        sub.close()
     return 0
