@@ -205,8 +205,8 @@ def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray
 
 def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray,
                        spacing: np.ndarray, params: DetectorParams, pinned: np.ndarray,
-                       accepted: np.ndarray | None = None, criteria: tuple = FINAL_CRITERIA
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                       accepted: np.ndarray | None = None, criteria: tuple = FINAL_CRITERIA,
+                       window: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refine predicted corners and keep those the probe confirms near their prediction.
 
     Returns (refined (M, 2), good (M,) bool, quality (M,) as probe_quality). A point the probe already
@@ -214,7 +214,8 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     e.g. along a line a fisheye lens bends hard). Predictions that are ``pinned`` down independently
     (holes inside a grid: neighbours on all sides; a tracked board: the pose) only need the probe to see
     a corner there (thresholds relaxed further); the others (new rows outside a grid) must pass the probe
-    properly. Either way the refinement must stay within 0.25 x spacing of the prediction.
+    properly. Either way the refinement must stay within 0.25 x spacing of the prediction. ``window``: the
+    square size each refinement window is made for (subpixel.window_spacing), default ``spacing``.
     """
     if accepted is not None and len(accepted):
         d, j = nearest_of(np.ascontiguousarray(preds, np.float64), np.ascontiguousarray(accepted, np.float64))
@@ -224,7 +225,8 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     inside = ((preds[:, 0] > 2) & (preds[:, 1] > 2) & (preds[:, 0] < w - 3) & (preds[:, 1] < h - 3))
     refined = preds.copy()
     if inside.any():
-        refined[inside] = refine_corners(smooth, preds[inside], spacing[inside], criteria=criteria)
+        sizes = spacing if window is None else window
+        refined[inside] = refine_corners(smooth, preds[inside], sizes[inside], criteria=criteria)
     radii = probe_radii(spacing, params)
     ok, _dirs, meas = probe_candidates(
         gx, gy, smooth, np.ascontiguousarray(refined), np.ascontiguousarray(radii), params.probe_angles,

@@ -35,7 +35,7 @@ from edgecal.detection.grouping import group_grids
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
-from edgecal.detection.subpixel import nearest_spacing, refine_corners, saddle_refine
+from edgecal.detection.subpixel import nearest_spacing, refine_corners, refine_rim, saddle_refine
 from edgecal.detection.types import Detection, DetectionDebug
 from edgecal.images import as_grey
 from edgecal.targets import Board, Target
@@ -314,7 +314,7 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
         spacing = 2.0 * nearest_spacing(det.corners)
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
         xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0)
-        xy = _resettle_slid_corners(level.smooth, det.ids, _final_corners(level.smooth, xy, p), p)
+        xy = _resettle_slid_corners(level.smooth, det.ids, _final_corners(level.smooth, xy, det.ids, p), p)
         if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
@@ -435,7 +435,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
             notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
         # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
-        xy = _resettle_slid_corners(smooth, ids, _final_corners(smooth, xy, p), p)
+        xy = _resettle_slid_corners(smooth, ids, _final_corners(smooth, xy, ids, p), p)
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
@@ -465,13 +465,14 @@ def _number_copies(detections: list[Detection]) -> None:
     detections.sort(key=lambda d: (d.board, d.copy))
 
 
-def _final_corners(smooth: np.ndarray, xy: np.ndarray, p: DetectorParams,
+def _final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams,
                    spacing: np.ndarray | None = None) -> np.ndarray:
     """A board's final corners: cornerSubPix with the window from the grid's own spacing (``spacing``, or
-    the corners' nearest-neighbour distances), then (refiner "saddle") the saddle fit from there."""
+    the corners' nearest-neighbour distances), the corners on the board's rim again with a smaller window
+    where that continues the grid's lines better (refine_rim), then (refiner "saddle") the saddle fit."""
     spacing = nearest_spacing(xy) if spacing is None else spacing
-    xy = refine_corners(smooth, xy, spacing)
-    return saddle_refine(smooth, xy, spacing) if p.subpixel_refiner == "saddle" else xy
+    xy, window = refine_rim(smooth, refine_corners(smooth, xy, spacing), ids, spacing)
+    return saddle_refine(smooth, xy, window) if p.subpixel_refiner == "saddle" else xy
 
 
 def _resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
@@ -514,7 +515,7 @@ def _resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, 
         slid = off > np.maximum(SLID_FRACTION * spacing[sel], 1.5)
         if not slid.any():
             break
-        again = _final_corners(smooth, pred[slid], p, spacing[sel][slid])
+        again = _final_corners(smooth, pred[slid], ids[sel][slid], p, spacing[sel][slid])
         better = np.linalg.norm(again - pred[slid], axis=1) < off[slid]
         if not better.any():
             break

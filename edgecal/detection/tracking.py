@@ -30,7 +30,7 @@ from edgecal.detection.completion import verify_predictions
 from edgecal.detection.corner_covariance import corner_covariance
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import probe_radii
-from edgecal.detection.subpixel import nearest_spacing, subpixel_window
+from edgecal.detection.subpixel import nearest_spacing, on_board_rim, refine_rim, subpixel_window, window_spacing
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.images import as_grey
 
@@ -148,14 +148,17 @@ def _keep_following(predicted: np.ndarray, refined: np.ndarray, good: np.ndarray
 
 
 def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: list[np.ndarray],
-                   spacing: list[np.ndarray], p: DetectorParams, pinned: bool
+                   spacing: list[np.ndarray], p: DetectorParams, pinned: bool, rim_window: bool = False
                    ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """verify_predictions over the points of several boards in one call; (refined, good, quality) per board."""
+    """verify_predictions over the points of several boards in one call; (refined, good, quality) per board.
+    ``rim_window``: the points lie on their boards' rims and are refined with the rim's window."""
     if not sum(len(x) for x in points):
         return [(np.zeros((0, 2)), np.zeros(0, dtype=bool), np.zeros(0)) for _ in points]
     cat = np.ascontiguousarray(np.concatenate(points))
-    refined, good, quality = verify_predictions(smooth, gx, gy, cat, np.concatenate(spacing), p,
-                                                np.full(len(cat), pinned))
+    sizes = np.concatenate(spacing)
+    window = window_spacing(sizes, np.ones(len(sizes), dtype=bool)) if rim_window else None
+    refined, good, quality = verify_predictions(smooth, gx, gy, cat, sizes, p, np.full(len(cat), pinned),
+                                                window=window)
     bounds = np.cumsum([0] + [len(x) for x in points])
     return [(refined[i:j], good[i:j], quality[i:j]) for i, j in zip(bounds[:-1], bounds[1:])]
 
@@ -210,6 +213,19 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         for part in range(3):
             results[k][part][m] = again[part]
         _keep_following(local[k], results[k][0], results[k][1])
+    # Pass 3: rim corners still missed, with the rim's smaller window: where a board's outer squares are cut
+    # short the full window reaches its edge and pulls the corner outwards (subpixel.window_spacing).
+    rim_missed = [np.flatnonzero(~res[1] & on_board_rim(pr.ids, (pr.board.cols, pr.board.rows)))
+                  for pr, res in zip(predictions, results)]
+    starts = [(local[k] if motions[k] is None else local[k] @ motions[k][:, :2].T + motions[k][:, 2])[m]  # type: ignore[index]
+              for k, m in enumerate(rim_missed)]
+    rim_again = _verify_boards(smooth, gx, gy, starts, [spacing[k][m] for k, m in enumerate(rim_missed)], p, True,
+                               rim_window=True)
+    for k, (m, again) in enumerate(zip(rim_missed, rim_again)):
+        if len(m):
+            for part in range(3):
+                results[k][part][m] = again[part]
+            _keep_following(local[k], results[k][0], results[k][1])
     # Boards with enough confirmed corners whose squares have the right colours...
     kept = []
     for pr, sp, (refined, good, quality) in zip(predictions, spacing, results):
@@ -227,6 +243,8 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     for (pr, ids, xy, quality, _s, sp), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
         if slipped_sides(corner, sides):
             continue
+        # the rim corners once more with a window that leaves out the board's edge (cut outer squares)
+        xy, _window = refine_rim(smooth, xy, ids, sp)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
