@@ -18,14 +18,14 @@ increasing (shifted by the length of the sequence), so only the first pass is bi
 the decoded arrays, read-only, so that ``read()`` costs what a camera's does: a PNG decode per frame
 (~14 ms for 1280x800) would otherwise be counted as the consumer's time. Pixels, stamps, seq, looping
 and pacing are the same as without it; an unreadable file still raises its InputError at its own
-``read()``. ``preload_max_mb`` bounds the memory (estimated from the first images before decoding all).
+``read()``. ``preload_max_mb`` bounds the memory (estimated from the first images before decoding all;
+drivers/preload.py).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,17 +35,17 @@ import numpy as np
 
 from edgecal.config import setting
 from edgecal.drivers.base import Frame, Source, StereoFrame, StereoSource
+from edgecal.drivers.preload import Unreadable, frame_image, preload_for, read_image_file
 from edgecal.drivers.recording import MANIFEST, load_manifest
 from edgecal.drivers.spec import SourceSettings, SourceSpec, pace_setting
 from edgecal.errors import InputError
 from edgecal.fileio import read_input
 from edgecal.imageheader import image_size
-from edgecal.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, image_files, read_image
+from edgecal.images import DEFAULT_MAX_PIXELS, IMAGE_SUFFIXES, image_files
 
 DEFAULT_FPS = 30.0
 # A rendered stereo sequence's ground truth (edgecal.synth), whose frames carry their capture stamps.
 SYNTH_TRUTH = "truth.json"
-MIB = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -73,84 +73,6 @@ class ReplayItem:
     camera_id: str
     exposure_us: float | None = None
     gain_db: float | None = None
-
-
-def read_image_file(path: Path, max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
-    """The image's pixels unchanged (grey or BGR, uint8 or uint16); InputError naming the file otherwise
-    (including an image above ``max_pixels``, refused from its header before decoding)."""
-    image = read_image(path, max_pixels)
-    if image.ndim == 3 and image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
-    return image
-
-
-
-
-@dataclass(frozen=True)
-class Unreadable:
-    """A preloaded file that did not decode: its InputError message, raised again at that frame's read()."""
-
-    message: str
-
-
-def preload_images(files: Sequence[Path], where: Path | str, max_mb: float, group: int = 1,
-                   max_pixels: int = DEFAULT_MAX_PIXELS) -> list[np.ndarray | Unreadable]:
-    """Decode ``files`` once: read-only arrays (Unreadable for a file that does not decode), in order.
-
-    ``group`` files make one frame (2 for stereo pairs): the first group's decoded size times the number
-    of groups is the memory estimate, refused with an InputError naming ``where`` before the rest is
-    decoded when it exceeds ``max_mb``; the running total is checked too (the images may differ in size).
-    A file that does not decode is kept as Unreadable, so that its frame fails at read() as without preload.
-    """
-    def refuse(estimate_bytes: float) -> InputError:
-        mb = estimate_bytes / MIB
-        size = f"{mb:.0f}" if mb >= 10 else f"{mb:.2f}"
-        return InputError(f"{where}: preloading {len(files)} images needs about {size} MB, more than "
-                          f"preload_max_mb ({max_mb:g}); raise preload_max_mb or set preload: false")
-
-    out: list[np.ndarray | Unreadable] = []
-    total = 0
-    limit = max_mb * MIB
-    estimated = False
-    for i, path in enumerate(files):
-        try:
-            image = read_image_file(path, max_pixels)
-        except InputError as exc:
-            out.append(Unreadable(str(exc)))
-        else:
-            # Read-only: the same array is handed out on every loop pass, so a consumer writing into
-            # it would corrupt later passes; this makes such a write fail loudly instead.
-            image.flags.writeable = False
-            out.append(image)
-            total += image.nbytes
-        if not estimated and i + 1 >= group and total > 0:
-            # Once, from the first frame that decoded (normally the first group): refuse before the long decode.
-            estimated = True
-            if total / (i + 1) * len(files) > limit:
-                raise refuse(total / (i + 1) * len(files))
-        if total > limit:
-            raise refuse(total / (i + 1) * len(files))
-    return out
-
-
-def _preload_for(spec: SourceSpec, files: list[Path], group: int = 1) -> list[np.ndarray | Unreadable] | None:
-    """``files`` decoded (preload_images) when ``spec`` asks for a preload, else None."""
-    if not spec.settings.preload:
-        return None
-    return preload_images(files, Path(spec.target).expanduser(), spec.settings.preload_max_mb, group,
-                          spec.settings.max_pixels)
-
-
-def _frame_image(images: list[np.ndarray | Unreadable] | None, index: int, file: Path,
-                 max_pixels: int = DEFAULT_MAX_PIXELS) -> np.ndarray:
-    """Frame ``index``'s image: the preloaded array (a file that did not decode raises its InputError
-    anew, as a per-frame decode would), or ``file`` decoded now when nothing was preloaded."""
-    if images is None:
-        return read_image_file(file, max_pixels)
-    entry = images[index]
-    if isinstance(entry, Unreadable):
-        raise InputError(entry.message)
-    return entry
 
 
 class Pacer:
@@ -253,7 +175,7 @@ class ReplaySource(Source):
             stamps = [it.stamp_ns for it in self.items]
             period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else int(1e9 / DEFAULT_FPS)
             if self._images is None:
-                self._images = _preload_for(self.spec, [it.file for it in self.items])  # type: ignore[misc]
+                self._images = preload_for(self.spec, [it.file for it in self.items])  # type: ignore[misc]
             self._seq = _Sequence(len(self.items), period, self.spec.settings.loop)
             self._span_ns = (stamps[-1] - stamps[0] + period) if stamps else 0
 
@@ -284,7 +206,7 @@ class ReplaySource(Source):
         if k is None:
             return None
         item = self.items[k]
-        image = _frame_image(self._images, k, item.file, self.spec.settings.max_pixels)  # type: ignore[arg-type]
+        image = frame_image(self._images, k, item.file, self.spec.settings.max_pixels)  # type: ignore[arg-type]
         shift = self._seq.passes * self._span_ns
         stamp = item.stamp_ns + shift
         self._pacer.wait(stamp)
@@ -325,7 +247,7 @@ class StereoReplaySource(StereoSource):
     def _open(self) -> None:
         """Rewind; with ``preload``, decode every image now."""
         if self._images is None:
-            self._images = _preload_for(self.spec, [it.file for pair in self.pairs for it in pair],  # type: ignore[misc]
+            self._images = preload_for(self.spec, [it.file for pair in self.pairs for it in pair],  # type: ignore[misc]
                                         group=2)
         stamps = [min(a.stamp_ns, b.stamp_ns) for a, b in self.pairs]
         period = int(np.median(np.diff(stamps))) if len(stamps) > 1 else int(1e9 / DEFAULT_FPS)
@@ -342,7 +264,7 @@ class StereoReplaySource(StereoSource):
         seq_shift = self._seq.passes * len(self.pairs)
         frames = []
         for side, item in enumerate(self.pairs[k]):
-            frames.append((_frame_image(self._images, 2 * k + side, item.file,  # type: ignore[arg-type]
+            frames.append((frame_image(self._images, 2 * k + side, item.file,  # type: ignore[arg-type]
                                         self.spec.settings.max_pixels), item))
         self._pacer.wait(min(it.stamp_ns for _, it in frames) + shift)
         now = time.monotonic_ns()

@@ -259,12 +259,12 @@ def test_preload_is_paced_like_a_plain_replay(tmp_path: Path) -> None:
 
 def test_preload_refuses_more_memory_than_its_bound_before_decoding_all(tmp_path: Path,
                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    import edgecal.drivers.replay as replay
+    import edgecal.drivers.preload as preload
 
     folder = _write_mono_folder(tmp_path / "imgs", 10, (100, 100, 3))   # 10 x 30000 bytes decoded
     decoded = []
-    real = replay.read_image_file
-    monkeypatch.setattr(replay, "read_image_file", lambda p, *a: decoded.append(p) or real(p, *a))
+    real = preload.read_image_file
+    monkeypatch.setattr(preload, "read_image_file", lambda p, *a: decoded.append(p) or real(p, *a))
     src = open_source(f"replay:{folder}?preload=true&preload_max_mb=0.1")
     with pytest.raises(InputError, match=r"imgs: preloading 10 images needs about 0\.29 MB, more than "
                                          r"preload_max_mb \(0\.1\); raise preload_max_mb or set preload: false"):
