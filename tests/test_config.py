@@ -82,8 +82,9 @@ def test_null_and_absent_keep_the_default_or_the_base() -> None:
 
 def test_every_setting_has_a_doc() -> None:
     from edgecal.pose.types import PoseSettings
+    from edgecal.publish.publisher import PublishSettings
     from edgecal.publish.sink_settings import FoxgloveSettings, OutputSettings, RecordSettings
-    from edgecal.stream.config import LoopSettings, PublishSettings
+    from edgecal.stream.config import LoopSettings
     from edgecal.stream.tracker import TrackingSettings
     for cls in (DetectorParams, CalibrationSettings, PoseSettings, TrackingSettings, LoopSettings, PublishSettings,
                 OutputSettings, RecordSettings, FoxgloveSettings):

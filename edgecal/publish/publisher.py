@@ -13,6 +13,9 @@ it needs for the camera, the config and its logs): one that has not finished Zer
 ``handshake_timeout_s`` is dropped by ZeroMQ (idle TCP connections, a port scan), and at most
 ``max_connections`` are held at once (:class:`ConnectionLimit`; clients that complete the handshake at
 once and stay, e.g. a loop opening SUB sockets).
+
+:class:`PublishSettings` is the ``publish:`` section's part that configures this socket, read by
+edgecal.config.read_settings (the same section's frame names and other outputs: sink_settings.py).
 """
 
 from __future__ import annotations
@@ -23,14 +26,17 @@ import os
 import socket
 import threading
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import zmq
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
-from edgecal.errors import ConfigError, PublishError, quote
-from edgecal.publish.curve import AllowedKeys, ServerKeys
+from edgecal.config import ConfigReader, setting
+from edgecal.errors import ConfigError, InputError, PublishError, quote
+from edgecal.publish.curve import AllowedKeys, ServerKeys, load_server_keys, read_key_file
 from edgecal.publish.messages import POSE_TOPIC, STATUS_TOPIC, encode
 from edgecal.publish.sinks import FrameOutput, Sink
 
@@ -191,6 +197,52 @@ def _local_address(sock: zmq.Socket) -> int | str:
     return rest
 
 
+def _read_curve(r: ConfigReader, key: str) -> ServerKeys | None:
+    """``curve: {server_key, client_keys}``: both key files checked, each error naming its field."""
+    if r.data[key] is None:
+        return None
+    s = r.section(key)
+    s.reject_unknown(("server_key", "client_keys"))
+    server_key = Path(s.string("server_key")).expanduser()
+    client_keys = Path(s.string("client_keys")).expanduser()
+    try:
+        read_key_file(server_key, need_secret=True)    # its own field named when it is the wrong one
+    except InputError as exc:
+        raise s.fail("server_key", f"cannot be used: {exc}") from None
+    try:
+        return load_server_keys(server_key, client_keys)
+    except InputError as exc:
+        raise s.fail("client_keys", f"cannot be used: {exc}") from None
+
+
+@dataclass(frozen=True)
+class PublishSettings:
+    """Where and how poses are published (the ``publish:`` section also holds the OutputSettings)."""
+
+    endpoint: str = setting(DEFAULT_ENDPOINT, doc="the ZeroMQ PUB endpoint (loopback unless allow_remote)")
+    allow_remote: bool = setting(False, doc="bind beyond the loopback interface on purpose (needs curve)")
+    hwm: int = setting(4, doc="messages queued per subscriber before they are dropped", minimum=1, maximum=1000)
+    handshake_timeout_s: float = setting(HANDSHAKE_TIMEOUT_S, doc="a connection that has not spoken ZeroMQ by then "
+                                                                  "is dropped (s)", minimum=0.1, maximum=60)
+    # required beyond loopback; optional (and then enforced) on it
+    curve: ServerKeys | None = setting(None, doc="CURVE keys: {server_key, client_keys} (`edgecal keys`)",
+                                       read=_read_curve)
+    max_connections: int = setting(MAX_CONNECTIONS, doc="connections held at once; one accepted beyond is shut "
+                                                        "down at once (a flood cannot take the descriptors)",
+                                   minimum=1, maximum=10_000)
+
+    def config_problem(self) -> tuple[str, str] | None:
+        """An endpoint that cannot be bound, or one beyond loopback without keys."""
+        problem = endpoint_problem(self.endpoint, self.allow_remote)
+        if problem is not None:
+            return ("endpoint", f"{problem} (got {quote(self.endpoint)})")
+        if self.curve is None and not is_local_endpoint(self.endpoint):
+            return ("curve", f"is missing: beyond the loopback interface ({quote(self.endpoint)}) only subscribers "
+                             "with a known key may listen; give curve.server_key and curve.client_keys "
+                             "(`edgecal keys` makes key pairs)")
+        return None
+
+
 class PosePublisher(Sink):
     """A bound PUB socket; ``send_pose``/``send_status`` return False when the socket refused the message.
 
@@ -231,6 +283,12 @@ class PosePublisher(Sink):
                 from None
         if not endpoint.startswith("inproc://"):      # inproc peers hold no descriptors
             self._limit = ConnectionLimit(self._sock, max_connections, _local_address(self._sock))
+
+    @classmethod
+    def from_settings(cls, settings: PublishSettings) -> PosePublisher:
+        """The pose stream's socket, bound as the config's ``publish:`` section says."""
+        return cls(settings.endpoint, settings.hwm, curve=settings.curve,
+                   handshake_timeout_s=settings.handshake_timeout_s, max_connections=settings.max_connections)
 
     @property
     def refused_connections(self) -> int:

@@ -32,16 +32,9 @@ from edgecal.camera import StereoRig
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path, read_settings, section_keys, setting
 from edgecal.detection.params import DetectorParams, load_params
 from edgecal.drivers.spec import SourceSpec, spec_from_config
-from edgecal.errors import ConfigError, EdgecalError, InputError, exception_summary, quote
+from edgecal.errors import ConfigError, EdgecalError, exception_summary, quote
 from edgecal.pose.types import PoseSettings
-from edgecal.publish.curve import ServerKeys, load_server_keys, read_key_file
-from edgecal.publish.publisher import (
-    DEFAULT_ENDPOINT,
-    HANDSHAKE_TIMEOUT_S,
-    MAX_CONNECTIONS,
-    endpoint_problem,
-    is_local_endpoint,
-)
+from edgecal.publish.publisher import PublishSettings
 from edgecal.publish.sink_settings import OUTPUT_FIELDS, OutputSettings, read_outputs
 from edgecal.stream.tracker import TrackingSettings
 from edgecal.targets import Target, load_target
@@ -71,52 +64,6 @@ class LoopSettings:
 # Keys of the loop section that moved elsewhere -> what to write instead.
 RETIRED_LOOP_KEYS = {"latest_frame_wins": "set source.latest_only instead (true by default in the live loop: "
                                           "the source's reader keeps only the newest frame)"}
-
-
-def _read_curve(r: ConfigReader, key: str) -> ServerKeys | None:
-    """``curve: {server_key, client_keys}``: both key files checked, each error naming its field."""
-    if r.data[key] is None:
-        return None
-    s = r.section(key)
-    s.reject_unknown(("server_key", "client_keys"))
-    server_key = Path(s.string("server_key")).expanduser()
-    client_keys = Path(s.string("client_keys")).expanduser()
-    try:
-        read_key_file(server_key, need_secret=True)    # its own field named when it is the wrong one
-    except InputError as exc:
-        raise s.fail("server_key", f"cannot be used: {exc}") from None
-    try:
-        return load_server_keys(server_key, client_keys)
-    except InputError as exc:
-        raise s.fail("client_keys", f"cannot be used: {exc}") from None
-
-
-@dataclass(frozen=True)
-class PublishSettings:
-    """Where and how poses are published (the ``publish:`` section also holds the OutputSettings)."""
-
-    endpoint: str = setting(DEFAULT_ENDPOINT, doc="the ZeroMQ PUB endpoint (loopback unless allow_remote)")
-    allow_remote: bool = setting(False, doc="bind beyond the loopback interface on purpose (needs curve)")
-    hwm: int = setting(4, doc="messages queued per subscriber before they are dropped", minimum=1, maximum=1000)
-    handshake_timeout_s: float = setting(HANDSHAKE_TIMEOUT_S, doc="a connection that has not spoken ZeroMQ by then "
-                                                                  "is dropped (s)", minimum=0.1, maximum=60)
-    # required beyond loopback; optional (and then enforced) on it
-    curve: ServerKeys | None = setting(None, doc="CURVE keys: {server_key, client_keys} (`edgecal keys`)",
-                                       read=_read_curve)
-    max_connections: int = setting(MAX_CONNECTIONS, doc="connections held at once; one accepted beyond is shut "
-                                                        "down at once (a flood cannot take the descriptors)",
-                                   minimum=1, maximum=10_000)
-
-    def config_problem(self) -> tuple[str, str] | None:
-        """An endpoint that cannot be bound, or one beyond loopback without keys."""
-        problem = endpoint_problem(self.endpoint, self.allow_remote)
-        if problem is not None:
-            return ("endpoint", f"{problem} (got {quote(self.endpoint)})")
-        if self.curve is None and not is_local_endpoint(self.endpoint):
-            return ("curve", f"is missing: beyond the loopback interface ({quote(self.endpoint)}) only subscribers "
-                             "with a known key may listen; give curve.server_key and curve.client_keys "
-                             "(`edgecal keys` makes key pairs)")
-        return None
 
 
 @dataclass(frozen=True)

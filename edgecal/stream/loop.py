@@ -20,10 +20,12 @@ from edgecal.drivers.base import Source, StereoFrame
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, DeviceLost, EdgecalError, InputError, clip, exception_summary
 from edgecal.publish import PosePublisher, pose_message, status_message
+from edgecal.publish.publisher import PublishSettings
 from edgecal.publish.sinks import FrameOutput, Sink, build_sinks, close_all, fan_out
-from edgecal.stream.config import LiveConfig, PublishSettings, load_live_config
+from edgecal.stream.config import LiveConfig, load_live_config
 from edgecal.stream.frame_pipeline import FramePipeline, capture_time_ns
 from edgecal.stream.notify import SystemdNotifier
+from edgecal.stream.opener import SourceOpener
 from edgecal.stream.stats import LoopStats
 
 log = logging.getLogger("edgecal.stream")
@@ -71,9 +73,7 @@ class LiveLoop:
         self._next_open_ns = 0
         # Opening a camera can block for seconds (a GigE camera that does not answer); it runs in its own
         # thread so that status and the watchdog keep flowing meanwhile.
-        self._opener: threading.Thread | None = None
-        self._opened: tuple[Source | None, str] | None = None
-        self._opener_started_ns = 0
+        self._opener: SourceOpener | None = None
         # After a reload that changed the source: the config to go back to if the new source does not open.
         self._revert_to: LiveConfig | None = None
         self._next_status_ns = 0
@@ -115,7 +115,7 @@ class LiveLoop:
 
     def run(self) -> int:
         """Run until stopped; returns the exit code (0 after a stop request or the end of a replay)."""
-        self._publisher = open_publisher(self.config.publish)
+        self._publisher = PosePublisher.from_settings(self.config.publish)
         curve = self.config.publish.curve
         log.info("publishing on %s%s; source %s", self.config.publish.endpoint,
                  f" (CURVE, {len(curve.clients)} subscriber keys)" if curve else "", self.config.source.uri)
@@ -142,10 +142,8 @@ class LiveLoop:
                     self._release_io(CLOSE_LINGER_S)
             self.pipeline.close()
             if self._opener is not None:
-                self._opener.join(0.2)
-            if self._opened is not None and self._opened[0] is not None:
-                self._opened[0].close()
-                self._opened = None
+                self._opener.cancel()
+                self._opener = None
             if aborted:
                 # abort() closed the camera and socket under the running frame: whatever that frame raised
                 # is the abort's doing, not a failure, so the aborted loop ends cleanly
@@ -173,23 +171,17 @@ class LiveLoop:
             if now < self._next_open_ns:
                 time.sleep(min(READ_SLICE_S, (self._next_open_ns - now) / 1e9))
                 return
-            self._opened = None
-            self._opener_started_ns = time.monotonic_ns()
-            self._opener = threading.Thread(target=self._open_in_background, name="open-source", daemon=True)
-            self._opener.start()
+            self._opener = SourceOpener(self.config.source, self.source_factory)
             return
-        if self._opener.is_alive():
-            self._opener.join(READ_SLICE_S)
-            if (not self._ready_sent and self._opener.is_alive()
-                    and time.monotonic_ns() - self._opener_started_ns > self.config.loop.camera_lost_after_s * 1e9):
+        if not self._opener.wait(READ_SLICE_S):
+            if not self._ready_sent and self._opener.elapsed_s > self.config.loop.camera_lost_after_s:
                 # A camera that does not answer: the service is up and says so, waiting for it.
                 self.state = "camera-lost"
                 self._camera_message = f"opening {self.config.source.uri} takes long"
                 self._send_ready(f"waiting for the camera {self.config.source.uri}")
             return
+        source, error = self._opener.result()
         self._opener = None
-        source, error = self._opened or (None, "the source opener ended without a result")
-        self._opened = None
         if source is None:
             if self._revert_to is not None:
                 self._revert_source(error)
@@ -209,29 +201,6 @@ class LiveLoop:
             self.stats.reconnects += 1
         self.state = "running" if self._ready_sent else "starting"
         self._camera_message = ""
-
-    def _open_in_background(self) -> None:
-        """Create and open the configured source; leaves (source, "") or (None, why) in self._opened."""
-        spec = self.config.source
-        source = None
-        try:
-            source = self.source_factory(spec)    # latest-frame-wins: the source's latest_only
-            source.open()
-        except Exception as exc:  # DeviceError, InputError (a preload too large) or a driver's bug
-            if not isinstance(exc, EdgecalError):
-                log.exception("unexpected error while opening %s", spec.uri)
-            if source is not None:
-                try:
-                    source.close()
-                except Exception:  # the open already failed; its reason is what counts
-                    log.debug("closing %s after a failed open failed", spec.uri, exc_info=True)
-            why = str(exc) if isinstance(exc, EdgecalError) else exception_summary(exc)
-            self._opened = (None, clip(f"cannot open {spec.uri}: {why}"))
-            return
-        if self._stop_requested or self._aborted:
-            source.close()  # the loop has gone: nobody else would release the camera
-            return
-        self._opened = (source, "")
 
     def _camera_lost(self, why: str) -> None:
         self._close_source()
@@ -429,7 +398,7 @@ class LiveLoop:
         try:
             with self._io:
                 if self._publisher is None:          # lost in an earlier failed reload: bind the new one
-                    self._publisher = open_publisher(new.publish)
+                    self._publisher = PosePublisher.from_settings(new.publish)
                 elif new.publish != old.publish:
                     self._publisher = self._replace_publisher(new.publish, old.publish)
         except BaseException:
@@ -453,16 +422,16 @@ class LiveLoop:
         is closed and bound again, and bound with ``old`` again if that fails."""
         assert self._publisher is not None
         if new.endpoint != old.endpoint:
-            publisher = open_publisher(new)
+            publisher = PosePublisher.from_settings(new)
             self._publisher.close()
             return publisher
         self._publisher.close()
         self._publisher = None
         try:
-            return open_publisher(new)
+            return PosePublisher.from_settings(new)
         except Exception:
             try:
-                self._publisher = open_publisher(old)
+                self._publisher = PosePublisher.from_settings(old)
             except EdgecalError as exc:     # the port was taken meanwhile: retried every status period
                 log.error("cannot bind the pose stream again: %s", exc)
             raise
@@ -470,7 +439,7 @@ class LiveLoop:
     def _rebind(self) -> None:
         """Bind the pose stream again after a failed reload lost it (under _io; tried once per status period)."""
         try:
-            self._publisher = open_publisher(self.config.publish)
+            self._publisher = PosePublisher.from_settings(self.config.publish)
             log.info("pose stream bound again on %s", self.config.publish.endpoint)
         except EdgecalError as exc:
             self._rate_limited_error(f"pose stream not bound: {exc}")
@@ -487,12 +456,6 @@ def pipeline_for(config: LiveConfig, running: FramePipeline | None = None) -> Fr
     """The frame pipeline of ``config`` (sharing the ``running`` one's worker thread, after a reload)."""
     parts = (config.target, config.cameras, config.detector, config.pose, config.tracking)
     return running.reconfigured(*parts) if running is not None else FramePipeline(*parts)
-
-
-def open_publisher(settings: PublishSettings) -> PosePublisher:
-    """The pose stream's socket, bound as ``settings`` say."""
-    return PosePublisher(settings.endpoint, settings.hwm, curve=settings.curve,
-                         handshake_timeout_s=settings.handshake_timeout_s, max_connections=settings.max_connections)
 
 
 def run_live(config_path: str, notifier: SystemdNotifier | None = None) -> int:
