@@ -10,7 +10,7 @@ import pytest
 import zmq
 
 from edgecal.commands import listen
-from edgecal.errors import ConfigError, InputError
+from edgecal.errors import ConfigError, InputError, PublishError
 from edgecal.pose import Pose
 from edgecal.publish import (
     PosePublisher,
@@ -21,6 +21,8 @@ from edgecal.publish import (
     pose_message,
     status_message,
 )
+from edgecal.publish.outputs import LoopOutputs
+from edgecal.publish.publisher import PublishSettings
 from edgecal.publish.subscriber import MessageCollector, PoseSubscriber
 
 
@@ -239,3 +241,34 @@ def test_subscriber_takes_only_its_topics_and_a_collector_keeps_what_was_queued_
         messages = collector.close(drain_s=0.2)
     assert [m.get("seq", "status") for m in messages if m.get("seq") != -1] == ["status", 0, 1, 2]
     assert not any(t.name == "subscriber" and t.is_alive() for t in threading.enumerate())
+
+
+def _reaches(outputs: LoopOutputs, endpoint: str) -> bool:
+    """Whether a status sent through ``outputs`` reaches a subscriber of ``endpoint``."""
+    with PoseSubscriber(endpoint) as sub:
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            outputs.send("status", {"type": "status"})
+            if sub.receive(0.05) is not None:
+                return True
+    return False
+
+
+def test_loop_outputs_keep_the_running_stream_when_a_reload_cannot_bind() -> None:
+    first, taken, second = free_endpoint(), free_endpoint(), free_endpoint()
+    outputs = LoopOutputs()
+    running = PublishSettings(endpoint=first)
+    outputs.bind(running)
+    try:
+        with PosePublisher(taken), pytest.raises(PublishError, match="cannot bind"):
+            outputs.reconfigure(PublishSettings(endpoint=taken), running, None)
+        assert outputs.publisher is not None and outputs.publisher.endpoint == first and _reaches(outputs, first)
+        # The same endpoint with other settings: closed and bound again.
+        assert outputs.reconfigure(PublishSettings(endpoint=first, hwm=8), running, None) == []
+        assert _reaches(outputs, first)
+        outputs.reconfigure(PublishSettings(endpoint=second), PublishSettings(endpoint=first, hwm=8), None)
+        assert outputs.publisher is not None and outputs.publisher.endpoint == second and _reaches(outputs, second)
+        assert outputs.counters() == {"refused_connections": 0}
+    finally:
+        outputs.close()
+    assert outputs.publisher is None and outputs.all == []

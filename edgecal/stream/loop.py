@@ -19,9 +19,9 @@ from collections.abc import Callable
 from edgecal.drivers.base import Source, StereoFrame
 from edgecal.drivers.spec import SourceSpec
 from edgecal.errors import DeviceError, DeviceLost, EdgecalError, InputError, clip, exception_summary
-from edgecal.publish import PosePublisher, pose_message, status_message
-from edgecal.publish.publisher import PublishSettings
-from edgecal.publish.sinks import FrameOutput, Sink, build_sinks, close_all, fan_out
+from edgecal.publish import pose_message, status_message
+from edgecal.publish.outputs import LoopOutputs
+from edgecal.publish.sinks import FrameOutput, build_sinks, close_all
 from edgecal.stream.config import LiveConfig, load_live_config
 from edgecal.stream.frame_pipeline import FramePipeline, capture_time_ns
 from edgecal.stream.notify import SystemdNotifier
@@ -61,8 +61,7 @@ class LiveLoop:
         self._stop_requested_ns = 0
         self._reload_requested = False
         self._source: Source | None = None
-        self._publisher: PosePublisher | None = None
-        self._sinks: list[Sink] = []                 # the outputs beside ZeroMQ (MCAP log, Foxglove)
+        self._outputs = LoopOutputs()                # the ZeroMQ stream and the sinks beside it (MCAP, Foxglove)
         # The camera and the socket are used under this lock, so that abort() (another thread, when a
         # frame takes too long after SIGTERM) can release them while the loop is busy detecting.
         self._io = threading.RLock()
@@ -115,12 +114,12 @@ class LiveLoop:
 
     def run(self) -> int:
         """Run until stopped; returns the exit code (0 after a stop request or the end of a replay)."""
-        self._publisher = PosePublisher.from_settings(self.config.publish)
+        self._outputs.bind(self.config.publish)
         curve = self.config.publish.curve
         log.info("publishing on %s%s; source %s", self.config.publish.endpoint,
                  f" (CURVE, {len(curve.clients)} subscriber keys)" if curve else "", self.config.source.uri)
         try:
-            self._sinks = build_sinks(self.config.outputs)
+            self._outputs.sinks = build_sinks(self.config.outputs)
             self.warm_up()
             while not self._stop_requested:
                 if self._reload_requested:
@@ -237,12 +236,9 @@ class LiveLoop:
         self.state = "stopping"
         self.notifier.stopping()
         self._close_source()
-        if self._publisher is not None:
+        if self._outputs.publisher is not None:
             self._report(time.monotonic_ns())
-            self._publisher.close(linger_s)
-            self._publisher = None
-        close_all(self._sinks)
-        self._sinks = []
+        self._outputs.close(linger_s)
 
     def _close_source(self) -> None:
         with self._io:
@@ -321,17 +317,13 @@ class LiveLoop:
                            detection=result.detection)
         out = FrameOutput(frame, result.pose, msg, result.detections, capture_ns)
         with self._io:
-            fan_out(self._all_sinks(), "frame", out)
+            self._outputs.send("frame", out)
         self.stats.frame_done(now - capture_ns, result.pose.valid, result.failed_images)
 
     @property
     def _last_message(self) -> str:
         """The status message: the failed reload's reason and the camera's problem, whichever there are."""
         return clip("; ".join(m for m in (self._reload_message, self._camera_message) if m))
-
-    def _all_sinks(self) -> list[Sink]:
-        """Every output the loop publishes to: the ZeroMQ stream and the configured sinks (under _io)."""
-        return ([self._publisher] if self._publisher is not None else []) + self._sinks
 
     def _report(self, now: int) -> None:
         """Once a period: log the figures at INFO, publish them as status, pet the watchdog."""
@@ -342,14 +334,14 @@ class LiveLoop:
                  figures["dropped_frames"], figures["detection_failures"], figures["corrupt_frames"],
                  figures["poses_invalid"], f" ({self._last_message})" if self._last_message else "")
         figures["source"] = self.config.source.uri
-        if self._sinks:     # what the MCAP log / Foxglove server dropped or failed on (a stalled disk shows here)
-            figures["sinks"] = {s.name: {"dropped": s.dropped, "failures": s.failures} for s in self._sinks}
         with self._io:
-            if self._publisher is None and not self._aborted and self.state != "stopping":
-                self._rebind()
-            if self._publisher is not None:     # a flood of subscribers shows here (publish.max_connections)
-                figures["refused_connections"] = self._publisher.refused_connections
-            fan_out(self._all_sinks(), "status", status_message(self.state, figures, now, self._last_message))
+            if self._outputs.publisher is None and not self._aborted and self.state != "stopping":
+                try:                             # lost in a failed reload: tried once per status period
+                    self._outputs.rebind(self.config.publish)
+                except EdgecalError as exc:
+                    self._rate_limited_error(f"pose stream not bound: {exc}")
+            figures.update(self._outputs.counters())
+            self._outputs.send("status", status_message(self.state, figures, now, self._last_message))
         self.notifier.watchdog()
         self.notifier.status(f"{self.state}: {figures['fps']} fps, p99 {lat['p99']} ms")
         self._next_status_ns = now + int(self.config.loop.status_period_s * 1e9)
@@ -395,19 +387,9 @@ class LiveLoop:
         pipeline = pipeline_for(new, self.pipeline)
         # Opened before the running ones are let go: if one fails, they all stay.
         sinks = build_sinks(new.outputs) if new.outputs != old.outputs else None
-        try:
-            with self._io:
-                if self._publisher is None:          # lost in an earlier failed reload: bind the new one
-                    self._publisher = PosePublisher.from_settings(new.publish)
-                elif new.publish != old.publish:
-                    self._publisher = self._replace_publisher(new.publish, old.publish)
-        except BaseException:
-            close_all(sinks or [])
-            raise
-        if sinks is not None:
-            with self._io:
-                old_sinks, self._sinks = self._sinks, sinks
-            close_all(old_sinks)
+        with self._io:
+            old_sinks = self._outputs.reconfigure(new.publish, old.publish, sinks)
+        close_all(old_sinks)
         if new.source != old.source:
             self._close_source()            # reopened with the new settings on the next pass
             self._next_open_ns = 0
@@ -415,34 +397,6 @@ class LiveLoop:
         self.config = new
         self.pipeline = pipeline
         self._backoff_s = new.loop.reconnect_min_s
-
-    def _replace_publisher(self, new: PublishSettings, old: PublishSettings) -> PosePublisher:
-        """A publisher bound with ``new`` in place of the running one (under _io). A new endpoint is bound
-        before the old one is let go (if it is taken, nothing changes); the same endpoint with other settings
-        is closed and bound again, and bound with ``old`` again if that fails."""
-        assert self._publisher is not None
-        if new.endpoint != old.endpoint:
-            publisher = PosePublisher.from_settings(new)
-            self._publisher.close()
-            return publisher
-        self._publisher.close()
-        self._publisher = None
-        try:
-            return PosePublisher.from_settings(new)
-        except Exception:
-            try:
-                self._publisher = PosePublisher.from_settings(old)
-            except EdgecalError as exc:     # the port was taken meanwhile: retried every status period
-                log.error("cannot bind the pose stream again: %s", exc)
-            raise
-
-    def _rebind(self) -> None:
-        """Bind the pose stream again after a failed reload lost it (under _io; tried once per status period)."""
-        try:
-            self._publisher = PosePublisher.from_settings(self.config.publish)
-            log.info("pose stream bound again on %s", self.config.publish.endpoint)
-        except EdgecalError as exc:
-            self._rate_limited_error(f"pose stream not bound: {exc}")
 
     def _rate_limited_error(self, text: str, exc_info: bool | BaseException = False) -> None:
         """Log at most one such error per status period (a broken camera must not flood the journal)."""
