@@ -261,7 +261,9 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     noise_half = estimate_noise_sigma(half_grey)
     half_level = _Level(half_grey, noise_half)
     half, half_grids = _find_grids(half_level, p)
-    _boards_from_grids(half_level, half_grids, target, p, half)
+    # Provisional: whatever the half-resolution search finds is refined, checked and rated at full
+    # resolution below (or searched for there again), so its corners are not polished here.
+    _boards_from_grids(half_level, half_grids, target, p, half, provisional=True)
     # pyrDown's 5x5 binomial filter passes 0.27 of white noise: undo that instead of measuring again.
     noise_full = noise_half / 0.273
     if _all_boards_found(half.detections, target):
@@ -323,6 +325,7 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
         if len(grown) > len(xy):
             return None
         det.corners = xy + level.origin
+        det.quality = _corner_quality(level, xy, p)
     return (DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
                            half.detections, half.notes), level)
 
@@ -393,13 +396,18 @@ def _find_grids(level: _Level, p: DetectorParams, exclude: list[np.ndarray] | No
 
 
 def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: DetectorParams,
-                       debug: DetectionDebug) -> None:
+                       debug: DetectionDebug, provisional: bool = False) -> None:
     """Trim, complete, match to the target's boards and number each grid; appends to debug.detections.
 
     Every grid is grown as far as the image shows a chessboard (up to GRID_GROWTH_MAX_DIM labels per axis),
     not only up to the board's size: a board that is part of a larger regular grid is not the asked board
     (taking a sub-grid would put the board's origin at an arbitrary square), so it gives a note, not a
     detection. Several grids of one board's size all become detections, numbered by ``copy``.
+
+    ``provisional``: the boards are refined again at full resolution (_refine_at_full_resolution), which
+    also grows every board by one line to see whether it is part of a larger grid and rates its corners:
+    here a grid that already is a complete board is not grown, its corners keep the search's refinement
+    and its quality is left empty (corners refined once, at the resolution they are reported at).
     """
     smooth = level.smooth
     by_size = _boards_by_size(target)
@@ -411,7 +419,9 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
             grid = trim_false_edges(grid, smooth, p.min_contrast)
         # Completion is for boards the probe half-saw, not for every fragment of clutter; a complete board
         # is still tried one line further on every side (it may be a sub-grid of a larger one).
-        if len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) or _is_full_board(grid, by_size):
+        full_board = _is_full_board(grid, by_size)
+        if (len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) or full_board) \
+                and not (provisional and full_board):
             grid = complete_grid(grid, smooth, level.gx, level.gy, GRID_GROWTH_MAX_DIM, p, debug.accepted)
         if len(grid) >= p.min_grid_corners:
             finished.append(grid)
@@ -440,7 +450,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
         order = np.lexsort((ids[:, 0], ids[:, 1]))
-        quality = _corner_quality(level, xy[order], p)
+        quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows)))
         used_boards.add(board.name)
     _number_copies(debug.detections)

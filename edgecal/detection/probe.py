@@ -55,6 +55,29 @@ def _bilinear(img: np.ndarray, x: float, y: float) -> float:
 
 
 @njit(cache=True, nogil=True)
+def _bilinear_pair(ga: np.ndarray, gb: np.ndarray, x: float, y: float) -> tuple[float, float]:
+    """_bilinear of two images of one shape at the same point: the weights are computed once (the probe
+    samples both gradient images at every point of every ray)."""
+    h, w = ga.shape
+    if x < 0.0 or y < 0.0 or x > w - 1.0 or y > h - 1.0:
+        return 0.0, 0.0
+    x0 = int(x)
+    y0 = int(y)
+    if x0 >= w - 1:
+        x0 = w - 2
+    if y0 >= h - 1:
+        y0 = h - 2
+    fx = x - x0
+    fy = y - y0
+    top = ga[y0, x0] * (1.0 - fx) + ga[y0, x0 + 1] * fx
+    bottom = ga[y0 + 1, x0] * (1.0 - fx) + ga[y0 + 1, x0 + 1] * fx
+    a = top * (1.0 - fy) + bottom * fy
+    top = gb[y0, x0] * (1.0 - fx) + gb[y0, x0 + 1] * fx
+    bottom = gb[y0 + 1, x0] * (1.0 - fx) + gb[y0 + 1, x0 + 1] * fx
+    return a, top * (1.0 - fy) + bottom * fy
+
+
+@njit(cache=True, nogil=True)
 def _fill_profile(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: float, r_in: float,
                   edge_mode: int, cos_t: np.ndarray, sin_t: np.ndarray, out: np.ndarray) -> None:
     """Eq. (1): out[k] = mean edge signal along the ray at angle k from r_in to radius."""
@@ -70,8 +93,7 @@ def _fill_profile(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: fl
             r = r_in + i * step
             sx = x + r * c
             sy = y + r * s
-            ex = _bilinear(gx, sx, sy)
-            ey = _bilinear(gy, sx, sy)
+            ex, ey = _bilinear_pair(gx, gy, sx, sy)
             if edge_mode == EDGE_MAGNITUDE:
                 acc += math.sqrt(ex * ex + ey * ey)
             else:
