@@ -9,7 +9,8 @@ counted for itself, not for its caller, so the rows add up to the total. Per set
 total ms per image, the mean ms per image of every stage, and how many candidates, accepted points and
 boards each image had. Sets: 640x480 and 1280x800 renders with one board (``planar_640``, ``planar_1280``),
 renders without a board (``negatives_640``, ``negatives_1280``), frames of bench/live.py's hard robot
-sequence (``robot_hard``, 1280x800, three boards), and ../shared's synthetic sets when present.
+sequence (``robot_hard``, 1280x800, three boards), and ../shared's synthetic sets and the real photographs of
+one board (``real_opencv_stereo_9x6``, 640x480, ...) when present.
 """
 
 from __future__ import annotations
@@ -157,6 +158,21 @@ def shared_set(name: str, n: int) -> list[tuple[np.ndarray, Target]]:
     return out
 
 
+#: Real photographs of ../shared/data/real with one board of a size SOURCE.md gives (inner corners).
+REAL_BOARDS = {"opencv_stereo_9x6": (9, 6), "ocamcalib_urban_fisheye1": (6, 8),
+               "ocamcalib_scaramuzza_fisheye190": (6, 7)}
+
+
+def real_set(name: str, n: int) -> list[tuple[np.ndarray, Target]]:
+    """The first ``n`` photographs of ../shared/data/real/NAME with its board (empty when absent)."""
+    from edgecal.images import IMAGE_SUFFIXES, load_grey
+    folder = DATA / "real" / name
+    if not folder.is_dir():
+        return []
+    files = sorted(f for f in folder.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)[:n]
+    return [(load_grey(f), planar_target(*REAL_BOARDS[name])) for f in files]
+
+
 def load_sets(names: list[str], n: int) -> dict[str, list[tuple[np.ndarray, Target]]]:
     """The named sets (absent shared sets are skipped)."""
     makers: dict[str, Callable[[], list]] = {
@@ -168,6 +184,8 @@ def load_sets(names: list[str], n: int) -> dict[str, list[tuple[np.ndarray, Targ
     }
     for shared in ("planar", "hard", "multi", "negatives"):
         makers[f"shared_{shared}"] = functools.partial(shared_set, shared, n)
+    for real in REAL_BOARDS:
+        makers[f"real_{real}"] = functools.partial(real_set, real, n)
     out = {}
     for name in names:
         if name not in makers:
@@ -211,7 +229,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sets", default="planar_640,planar_1280,negatives_640,negatives_1280,robot_hard",
                     help="comma-separated: planar_640, planar_1280, negatives_640, negatives_1280, robot_hard, "
-                         "shared_planar, shared_hard, shared_multi, shared_negatives")
+                         "shared_planar, shared_hard, shared_multi, shared_negatives, "
+                         + ", ".join(f"real_{r}" for r in REAL_BOARDS))
     ap.add_argument("--images", type=int, default=8, help="images per set (default 8)")
     ap.add_argument("--repeat", type=int, default=3, help="calls per image; the median call is kept")
     args = ap.parse_args(argv)

@@ -471,9 +471,11 @@ def test_an_overexposed_board_with_bloomed_corners_is_found() -> None:
         assert any("overexposed" in n for n in debug.notes)
 
 
-@pytest.mark.parametrize("photometric,gain", [("clean", 0.6), ("normal", 0.9)])
-def test_saddle_fit_beats_cornersubpix_alone(photometric: str, gain: float) -> None:
-    """The default final refiner (cornerSubPix, then the saddle fit) against cornerSubPix alone, same boards."""
+@pytest.mark.parametrize("photometric,gain,rms_max", [("clean", 0.6, 0.008), ("normal", 0.9, 0.024)])
+def test_saddle_fit_beats_cornersubpix_alone(photometric: str, gain: float, rms_max: float) -> None:
+    """The default final refiner (cornerSubPix, then the saddle fit) against cornerSubPix alone, same boards;
+    and its RMS itself (the earlier 5x5 fit gave 0.0096 px on these clean and 0.025 px on these normal
+    renders, the 11x11 fit 0.0069 and 0.022)."""
     errors: dict[str, list[np.ndarray]] = {"saddle": [], "cornersubpix": []}
     for seed in range(4):
         view = planar_view(seed, size=(640, 480), square_px=(20.0, 45.0), photometric=photometric,
@@ -485,6 +487,7 @@ def test_saddle_fit_beats_cornersubpix_alone(photometric: str, gain: float) -> N
             errors[refiner].append(score.found_errors())
     rms = {k: corner_rms(np.concatenate(v)) for k, v in errors.items()}
     assert rms["saddle"] < gain * rms["cornersubpix"], rms
+    assert rms["saddle"] <= rms_max, rms
 
 
 def test_refiner_choice_is_validated() -> None:
