@@ -176,6 +176,27 @@ def test_bad_config_names_the_field(sequence: tuple[Path, dict], tmp_path: Path,
         load_live_config(cfg)
 
 
+def test_null_sections_and_files_keep_their_defaults(sequence: tuple[Path, dict], tmp_path: Path) -> None:
+    """`detector: null` (as the config's documentation writes it) is the built-in thresholds, like no detector
+    field; a null section is its defaults (before, `detector: null` was refused as missing)."""
+    import yaml
+    folder, _ = sequence
+    cfg = write_config(tmp_path / "live.yaml", folder, free_endpoint())
+    plain = load_live_config(cfg)
+    doc = yaml.safe_load(cfg.read_text())
+    doc.update({"detector": None, "pose": None, "tracking": None, "loop": None})
+    cfg.write_text(yaml.safe_dump(doc))
+    nulls = load_live_config(cfg)
+    assert nulls.detector is None and plain.detector is None
+    assert (nulls.pose, nulls.tracking) == (plain.pose, plain.tracking)
+    assert nulls.loop == type(plain.loop)()
+    doc["detector"] = "no-such-detector.yaml"           # named once (it was "field 'detector': FILE: field ...")
+    cfg.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError) as err:
+        load_live_config(cfg)
+    assert str(err.value) == f"{cfg}: field 'detector' names a file that does not exist: 'no-such-detector.yaml'"
+
+
 def test_the_live_source_keeps_only_the_newest_frame_unless_told_otherwise(sequence: tuple[Path, dict],
                                                                          tmp_path: Path) -> None:
     """One latest-frame-wins setting, the source's latest_only: true by default in the live loop."""

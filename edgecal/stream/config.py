@@ -20,13 +20,16 @@
 
 Relative paths are taken from the current directory; a target or detector file that is not found
 there is looked up among the files shipped in configs/ (e.g. ``targets/robot-3boards.yaml``).
-Each section is a settings dataclass beside the code that uses it, read by edgecal.config.read_settings.
+Each section is a settings dataclass beside the code that uses it, read by edgecal.config.read_settings; so
+is the top level (:class:`LiveFile`: the rig, target and detector files read by their fields' readers, the
+source checked against the rig as soon as both are read).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 from edgecal.camera import StereoRig
 from edgecal.config import ConfigReader, load_yaml_mapping, packaged_config_path, read_settings, section_keys, setting
@@ -129,13 +132,13 @@ def _declared_sizes(spec: SourceSpec) -> list[tuple[str, tuple[int, int]]]:
     return [(name, (w, h)) for name, w, h in sizes if w is not None and h is not None]
 
 
-def check_source(r: ConfigReader, spec: SourceSpec, rig_size: tuple[int, int]) -> None:
-    """What would only fail once the loop runs: a mono source, a replay that is missing or holds no frames,
-    images of another size than the rig's (a replay's first frame, or the size a camera is set to)."""
+def source_problem(spec: SourceSpec, rig_size: tuple[int, int]) -> tuple[str, str] | None:
+    """What would only fail once the loop runs, as (field, what): a mono source, a replay that is missing or
+    holds no frames, images of another size than the rig's (a replay's first frame, or a camera's set size)."""
     stereo_hint = "the live loop needs a stereo source (a 'stereo:' section with two cameras, depthai:, or a " \
         "replay of left/ and right/)"
     if spec.driver in MONO_DRIVERS:
-        raise r.fail("source", f"{spec.uri} is one camera: {stereo_hint}")
+        return ("source", f"{spec.uri} is one camera: {stereo_hint}")
     sizes = _declared_sizes(spec)
     if spec.driver == "replay":
         from edgecal.drivers.replay import replay_contents
@@ -143,21 +146,96 @@ def check_source(r: ConfigReader, spec: SourceSpec, rig_size: tuple[int, int]) -
         try:
             contents = replay_contents(spec)
         except EdgecalError as exc:
-            raise r.fail("source", f"cannot be replayed: {exc}") from None
+            return ("source", f"cannot be replayed: {exc}")
         if contents.frames == 0:
-            raise r.fail("source", f"{spec.target} holds no frames to replay")
+            return ("source", f"{spec.target} holds no frames to replay")
         if not contents.stereo:
-            raise r.fail("source", f"{spec.target} holds single images: {stereo_hint}")
+            return ("source", f"{spec.target} holds single images: {stereo_hint}")
         if contents.image_size is not None:
             sizes.append(("replay", contents.image_size))
     w, h = rig_size
     for name, (sw, sh) in sizes:
         if (sw, sh) != (w, h):
-            raise r.fail("rig", f"was calibrated at {w}x{h} but the {name} images are {sw}x{sh} "
-                                "(calibrate at the size the cameras deliver)")
+            return ("rig", f"was calibrated at {w}x{h} but the {name} images are {sw}x{sh} "
+                           "(calibrate at the size the cameras deliver)")
+    return None
 
 
-LIVE_FIELDS = ("source", "rig", "target", "detector", "pose", "tracking", "publish", "loop")
+class LoadedRig(NamedTuple):
+    """The ``rig:`` field: the rig.yaml it names and the stereo pair read from it."""
+
+    path: Path
+    cameras: StereoRig
+
+
+def _read_source(r: ConfigReader, key: str) -> SourceSpec:
+    # The live loop always works on the newest frame unless the source says otherwise.
+    return spec_from_config(r.section(key), defaults={"latest_only": True})
+
+
+def _read_rig(r: ConfigReader, key: str) -> LoadedRig:
+    path = _resolve(r, key, packaged=False)
+    return LoadedRig(path, load_stereo_cameras(path, key, r.source))
+
+
+def _read_target(r: ConfigReader, key: str) -> Target:
+    path = _resolve(r, key, packaged=True)
+    try:
+        return load_target(path)
+    except ConfigError as exc:
+        raise ConfigError(f"{r.source}: field '{key}': {exc}") from None
+
+
+def _read_detector(r: ConfigReader, key: str) -> DetectorParams | None:
+    if r.data[key] is None:          # `detector: null`, as the example above writes it: the built-in thresholds
+        return None
+    path = _resolve(r, key, packaged=True)
+    try:
+        return load_params(path)
+    except ConfigError as exc:
+        raise ConfigError(f"{r.source}: field '{key}': {exc}") from None
+
+
+def _read_publish(r: ConfigReader, key: str) -> tuple[PublishSettings, OutputSettings]:
+    return read_publish(r.section(key, {}))
+
+
+def _read_loop(r: ConfigReader, key: str) -> LoopSettings:
+    return read_settings(LoopSettings, r.section(key, {}), retired=RETIRED_LOOP_KEYS)
+
+
+@dataclass(frozen=True)
+class SourceAndRig:
+    """The ``source:`` and ``rig:`` fields, checked against each other as soon as both are read (no device is
+    opened: a replay's first image is decoded for its size)."""
+
+    source: SourceSpec = setting(doc="the stereo source: a drivers source section (edgecal/drivers/spec.py)",
+                                 read=_read_source)
+    rig: LoadedRig = setting(doc="the stereo calibration (rig.yaml: cv2.FileStorage, T in metres)", read=_read_rig)
+
+    def config_problem(self) -> tuple[str, str] | None:
+        """The source refused by the rig (see source_problem)."""
+        return source_problem(self.source, self.rig.cameras.image_size)
+
+
+@dataclass(frozen=True)
+class LiveFile:
+    """The live config file's top level as read, in the order its fields are checked; :func:`load_live_config`
+    makes the LiveConfig the loop uses of it."""
+
+    cameras: SourceAndRig = setting(doc="source and rig", inline=True)
+    target: Target = setting(doc="the target file (also looked up among the shipped configs/)", read=_read_target)
+    detector: DetectorParams | None = setting(None, doc="optional detector thresholds file (configs/detector.yaml "
+                                                        "format)", read=_read_detector)
+    pose: PoseSettings = setting(PoseSettings(), doc="pose estimation and its quality bounds")
+    tracking: TrackingSettings = setting(TrackingSettings(), doc="when predicted corners are verified, not searched")
+    publish: tuple[PublishSettings, OutputSettings] = setting((PublishSettings(), OutputSettings()),
+                                                              doc="the ZeroMQ stream and the outputs beside it",
+                                                              read=_read_publish)
+    loop: LoopSettings = setting(LoopSettings(), doc="the loop's timing", read=_read_loop)
+
+
+LIVE_FIELDS = section_keys(LiveFile)
 
 
 def load_live_config(path: str | Path) -> LiveConfig:
@@ -167,26 +245,8 @@ def load_live_config(path: str | Path) -> LiveConfig:
     decoded, to check its size against the rig's); the rig, target and detector files are read.
     """
     src = str(path)
-    r = ConfigReader(load_yaml_mapping(path), src)
-    r.reject_unknown(LIVE_FIELDS)
-    # The live loop always works on the newest frame unless the source says otherwise.
-    source = spec_from_config(r.section("source"), defaults={"latest_only": True})
-    rig_path = _resolve(r, "rig", packaged=False)
-    cameras = load_stereo_cameras(rig_path, "rig", src)
-    check_source(r, source, cameras.image_size)
-    target_path = _resolve(r, "target", packaged=True)
-    try:
-        target = load_target(target_path)
-    except ConfigError as exc:
-        raise ConfigError(f"{src}: field 'target': {exc}") from None
-    detector = None
-    if r.has("detector"):
-        try:
-            detector = load_params(_resolve(r, "detector", packaged=True))
-        except ConfigError as exc:
-            raise ConfigError(f"{src}: field 'detector': {exc}") from None
-    pose = read_settings(PoseSettings, r.section("pose", {}))
-    publish, outputs = read_publish(r.section("publish", {}))
-    loop = read_settings(LoopSettings, r.section("loop", {}), retired=RETIRED_LOOP_KEYS)
-    tracking = read_settings(TrackingSettings, r.section("tracking", {}))
-    return LiveConfig(src, source, cameras, target, detector, pose, publish, loop, str(rig_path), tracking, outputs)
+    f = read_settings(LiveFile, ConfigReader(load_yaml_mapping(path), src))
+    publish, outputs = f.publish
+    source, rig = f.cameras.source, f.cameras.rig
+    return LiveConfig(src, source, rig.cameras, f.target, f.detector, f.pose, publish, f.loop, str(rig.path),
+                      f.tracking, outputs)
