@@ -88,23 +88,28 @@ def _rim_misfit(candidates: np.ndarray, which: np.ndarray, xy: np.ndarray, ids: 
     lines smoothly), measured along that line only (cut outer squares push a corner outwards, along it; the
     neighbours on the same outer line are pushed alike and say nothing). 0 where those corners are missing.
     """
-    index = {(int(c), int(r)): i for i, (c, r) in enumerate(ids)}
     lo, hi = ids.min(axis=0), ids.max(axis=0)
-    out = np.zeros(len(candidates))
-    for n, (c, r) in enumerate(which):
-        total = 0.0
-        for axis, inward in ((0, 1), (0, -1), (1, 1), (1, -1)):
-            if (c, r)[axis] != (lo if inward > 0 else hi)[axis]:
-                continue
-            step = (inward, 0) if axis == 0 else (0, inward)
-            nb = [index.get((int(c) + k * step[0], int(r) + k * step[1])) for k in (1, 2, 3)]
-            if any(j is None for j in nb):
-                continue
-            a, b, cc = xy[nb[0]], xy[nb[1]], xy[nb[2]]
-            along = (a - b) / max(float(np.linalg.norm(a - b)), 1e-9)
-            total += float((candidates[n] - (3.0 * a - 3.0 * b + cc)) @ along) ** 2
-        out[n] = np.sqrt(total)
-    return out
+    cols, rows = (hi - lo + 1).tolist()
+    grid = np.full((rows, cols, 2), np.nan)        # the grid's corners by (row, col); NaN where missing
+    grid[ids[:, 1] - lo[1], ids[:, 0] - lo[0]] = xy
+    at = np.asarray(which, dtype=np.int64) - lo
+    total = np.zeros(len(at))
+    for axis, inward, line in ((0, 1, 0), (0, -1, cols - 1), (1, 1, 0), (1, -1, rows - 1)):
+        on = at[:, axis] == line
+        if not on.any():
+            continue
+        nb = []
+        for k in (1, 2, 3):
+            q = at.copy()
+            q[:, axis] += k * inward
+            outside = (q[:, axis] < 0) | (q[:, axis] >= (cols, rows)[axis])
+            q[:, axis] = np.clip(q[:, axis], 0, (cols, rows)[axis] - 1)
+            nb.append(np.where(outside[:, None], np.nan, grid[q[:, 1], q[:, 0]]))
+        a, b, c = nb
+        along = (a - b) / np.maximum(np.linalg.norm(a - b, axis=1, keepdims=True), 1e-9)
+        off = np.sum((candidates - (3.0 * a - 3.0 * b + c)) * along, axis=1)
+        total += np.where(on & np.isfinite(off), off, 0.0) ** 2
+    return np.sqrt(total)
 
 
 def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
