@@ -43,8 +43,9 @@ DATA = Path(os.environ.get("EDGECAL_DATA", REPO.parent / "shared" / "data"))
 STAGES = (
     ("edgecal.detection.detector", "as_grey", "convert"),
     ("edgecal.detection.detector", "estimate_noise_sigma", "noise"),
-    ("edgecal.detection.detector", "smooth_image", "smooth"),
-    ("edgecal.detection.detector", "gradients", "gradients"),
+    ("edgecal.detection.levels", "estimate_noise_sigma", "noise"),
+    ("edgecal.detection.levels", "smooth_image", "smooth"),
+    ("edgecal.detection.levels", "gradients", "gradients"),
     ("edgecal.detection.detector", "min_eigen_candidates", "candidates"),
     ("edgecal.detection.detector", "snap_to_saddle", "snap"),
     ("edgecal.detection.detector", "dedupe_in_order", "dedupe"),
@@ -64,8 +65,10 @@ STAGES = (
     ("edgecal.detection.detector", "_corner_quality", "quality"),
     ("edgecal.detection.detector", "corner_covariance", "covariance"),
     ("edgecal.detection.detector", "_outside_boards", "exclusion"),
-    ("edgecal.detection.detector", "saddle_refine", "saddle"),
-    ("edgecal.detection.detector", "_resettle_slid_corners", "resettle"),
+    ("edgecal.detection.board_corners", "refine_corners", "subpixel"),
+    ("edgecal.detection.board_corners", "nearest_spacing", "spacing"),
+    ("edgecal.detection.board_corners", "saddle_refine", "saddle"),
+    ("edgecal.detection.detector", "resettle_slid_corners", "resettle"),
 )
 
 

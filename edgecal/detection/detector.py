@@ -16,29 +16,35 @@ import math
 import cv2
 import numpy as np
 
+from edgecal.detection.board_corners import final_corners, resettle_slid_corners
 from edgecal.detection.candidates import (
     chess_filter,
     chess_ring,
     chess_thresholds,
     dedupe_in_order,
     estimate_noise_sigma,
-    gradients,
     min_eigen_candidates,
     noise_response_floor,
-    smooth_image,
-    smoothing_sigma,
     snap_to_saddle,
 )
-from edgecal.detection.completion import complete_grid, predict_holes, trim_false_edges
+from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma
 from edgecal.detection.grouping import group_grids
+from edgecal.detection.levels import Level, window_level
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
-from edgecal.detection.subpixel import nearest_spacing, refine_corners, refine_rim, saddle_refine
+from edgecal.detection.subpixel import nearest_spacing, refine_corners
+from edgecal.detection.target_boards import (
+    all_boards_found,
+    boards_by_size,
+    is_full_board,
+    note_near_miss,
+    number_copies,
+)
 from edgecal.detection.types import Detection, DetectionDebug
 from edgecal.images import as_grey
-from edgecal.targets import Board, Target
+from edgecal.targets import Target
 
 DEFAULT_PARAMS = DetectorParams()
 # Closest two corners of a board may be at half resolution before its corners are not trusted there
@@ -47,8 +53,6 @@ MIN_HALF_SPACING_PX = 5.0
 # Completion grows a grid up to this many labels per axis whatever the board's size, so that a board that is
 # part of a larger regular grid is seen as that grid (and its size said in the note), never as a sub-grid.
 GRID_GROWTH_MAX_DIM = 40
-# A final corner further than this fraction of a square from where its neighbours put it slid along an edge.
-SLID_FRACTION = 0.2
 # ChESS rings (px) of the candidate filter: 3 px for the smallest squares, 5 px past a blurred corner's blur.
 CHESS_RADII_PX = (3.0, 5.0)
 # Grey level from which a pixel counts as saturated (8-bit; JPEG ringing keeps some just below 255).
@@ -59,9 +63,6 @@ SATURATED_LEVEL = 250
 # of the outermost corners. Smoothing and gradients then cost the window's area, not the image's.
 WINDOW_MARGIN_STEPS = 2.5
 WINDOW_MARGIN_PX = 48
-# The window's left edge on a multiple of this many pixels: OpenCV's vectorised filters then round every
-# pixel as they do on the whole image (a start off the vector grid moves pixels between vector and scalar code).
-_WINDOW_ALIGN_PX = 32
 _CHESS_RINGS = np.array([np.stack(chess_ring(r)) for r in CHESS_RADII_PX], dtype=np.int64)
 
 
@@ -75,7 +76,7 @@ def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, 
                             p.min_contrast, p.min_peak_ratio)
 
 
-def _first_pass(level: _Level, cands: np.ndarray, p: DetectorParams) -> np.ndarray:
+def _first_pass(level: Level, cands: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Candidates accepted by the probe at r_e or, failing that, at a small or a large radius.
 
     Min-eigenvalue maxima sit 1-3 px off an X-corner (the gradient vanishes at the saddle itself), and the
@@ -110,79 +111,6 @@ def _first_pass(level: _Level, cands: np.ndarray, p: DetectorParams) -> np.ndarr
     return pts[accepted]
 
 
-def _grid_span(grid: dict[tuple[int, int], np.ndarray]) -> tuple[int, int]:
-    uv = np.array(list(grid.keys()))
-    span = uv.max(axis=0) - uv.min(axis=0) + 1
-    return int(span[0]), int(span[1])
-
-
-def _is_full_board(grid: dict[tuple[int, int], np.ndarray], by_size: dict[frozenset, list[Board]]) -> bool:
-    """Whether the grid is a full rectangle of one of the target's board sizes (no completion needed)."""
-    span = _grid_span(grid)
-    return len(grid) == span[0] * span[1] and frozenset(span) in by_size
-
-
-def _boards_by_size(target: Target) -> dict[frozenset, list[Board]]:
-    out: dict[frozenset, list[Board]] = {}
-    for b in target.boards:
-        out.setdefault(frozenset((b.cols, b.rows)), []).append(b)
-    return out
-
-
-def _all_boards_found(detections: list[Detection], target: Target) -> bool:
-    """Whether every board of the target has been found at least once."""
-    return {b.name for b in target.boards} <= {d.board for d in detections}
-
-
-class _Level:
-    """The images one pyramid level works on; the gradients are computed on first use only (a level that
-    only refines corners found on a coarser one never needs them).
-
-    A level can be a window of its image: ``grey`` is then the window, ``origin`` (x, y) its top-left pixel
-    in the image and ``image`` the whole image (the covariances' noise is measured on all of it).
-    """
-
-    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None,
-                 origin: tuple[int, int] = (0, 0), image: np.ndarray | None = None) -> None:
-        self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
-        # estimate_noise_sigma of cv2.pyrDown(image) when the pyramid measured it (the covariances reuse it)
-        self.half_noise = half_noise
-        self.grey = grey
-        self.origin = np.array(origin, dtype=np.float64)
-        self.image = grey if image is None else image
-        self.smoothing_sigma = smoothing_sigma(self.noise_sigma)
-        self.smooth = smooth_image(grey, self.smoothing_sigma)
-        self._gradients: tuple[np.ndarray, np.ndarray] | None = None
-
-    @property
-    def gx(self) -> np.ndarray:
-        return self._grads()[0]
-
-    @property
-    def gy(self) -> np.ndarray:
-        return self._grads()[1]
-
-    def _grads(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._gradients is None:
-            self._gradients = gradients(self.smooth)
-        return self._gradients
-
-
-def _window_level(grey: np.ndarray, noise_sigma: float, half_noise: float | None,
-                  box: tuple[float, float, float, float]) -> _Level:
-    """A level on the window of ``grey`` holding ``box`` (x0, y0, x1, y1 pixels), whose smoothed image and
-    gradients equal the whole image's within the box: the window reaches past it by the smoothing kernel
-    and the gradient stencil (clipped at the image's border, where both mirror the same way)."""
-    h, w = grey.shape
-    pad = int(np.ceil(2.5 * smoothing_sigma(noise_sigma))) + 2
-    x0 = max(0, int(math.floor(box[0])) - pad)
-    x0 -= x0 % _WINDOW_ALIGN_PX
-    y0 = max(0, int(math.floor(box[1])) - pad)
-    x1 = min(w, int(math.ceil(box[2])) + pad + 1)
-    y1 = min(h, int(math.ceil(box[3])) + pad + 1)
-    return _Level(grey[y0:y1, x0:x1], noise_sigma, half_noise, (x0, y0), grey)
-
-
 Grid = dict[tuple[int, int], np.ndarray]
 
 
@@ -196,7 +124,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
     grey = as_grey(image)
     debug, level = _search(grey, target, p)
     add_covariances(debug.detections, level)
-    if not _all_boards_found(debug.detections, target) and _blooming(grey, p):
+    if not all_boards_found(debug.detections, target) and _blooming(grey, p):
         _add_bloomed_boards(grey, target, p, debug)
     return debug
 
@@ -224,11 +152,11 @@ def _add_bloomed_boards(grey: np.ndarray, target: Target, p: DetectorParams, deb
         return
     add_covariances(new, level)
     debug.detections.extend(new)
-    _number_copies(debug.detections)
+    number_copies(debug.detections)
     debug.notes.append("overexposed: boards found in the image eroded by 3x3 (white bloomed over the corners)")
 
 
-def add_covariances(detections: list[Detection], level: _Level) -> None:
+def add_covariances(detections: list[Detection], level: Level) -> None:
     """Fill in covariance and unusable of ``detections`` (corners refined on ``level``), one call for all."""
     if not detections:
         return
@@ -243,7 +171,7 @@ def add_covariances(detections: list[Detection], level: _Level) -> None:
         start += len(d.corners)
 
 
-def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, _Level]:
+def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, Level]:
     """The search of detect_debug; also returns the full-resolution level the corners were refined on.
 
     Large images are searched at half resolution first (a quarter of the pixel work). Boards found there are
@@ -252,25 +180,25 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     squares need it).
     """
     if min(grey.shape) < p.pyramid_min_size_px:
-        level = _Level(grey)
+        level = Level(grey)
         debug, grids = _find_grids(level, p)
         _boards_from_grids(level, grids, target, p, debug)
         return debug, level
 
     half_grey = cv2.pyrDown(grey)
     noise_half = estimate_noise_sigma(half_grey)
-    half_level = _Level(half_grey, noise_half)
+    half_level = Level(half_grey, noise_half)
     half, half_grids = _find_grids(half_level, p)
     # Provisional: whatever the half-resolution search finds is refined, checked and rated at full
     # resolution below (or searched for there again), so its corners are not polished here.
     _boards_from_grids(half_level, half_grids, target, p, half, provisional=True)
     # pyrDown's 5x5 binomial filter passes 0.27 of white noise: undo that instead of measuring again.
     noise_full = noise_half / 0.273
-    if _all_boards_found(half.detections, target):
+    if all_boards_found(half.detections, target):
         refined = _refine_at_full_resolution(half, grey, noise_full, noise_half, p)
         if refined is not None:
             return refined
-    level = _Level(grey, noise_full, noise_half)
+    level = Level(grey, noise_full, noise_half)
     # pyrDown keeps the even pixels: x_full = 2 x_half.
     debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
     seeds = []
@@ -284,7 +212,7 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
         xy = refine_corners(level.smooth, xy, spacing)
         seeds.append(dict(zip(grid.keys(), xy)))
     _boards_from_grids(level, seeds, target, p, debug)
-    if _all_boards_found(debug.detections, target):
+    if all_boards_found(debug.detections, target):
         return debug, level
     # The boards found so far are not searched for again: their areas are left out of the full search.
     full, grids = _find_grids(level, p, exclude=[d.corners for d in debug.detections])
@@ -295,7 +223,7 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
 
 
 def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sigma: float, half_noise: float,
-                               p: DetectorParams) -> tuple[DetectionDebug, _Level] | None:
+                               p: DetectorParams) -> tuple[DetectionDebug, Level] | None:
     """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution, on a
     window of ``grey`` around them (WINDOW_MARGIN_STEPS); also returns that window's level.
 
@@ -310,13 +238,13 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
         margin = WINDOW_MARGIN_STEPS * 2.0 * _largest_step(det.corners, det.ids) + WINDOW_MARGIN_PX
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
-    level = _window_level(grey, noise_sigma, half_noise,
+    level = window_level(grey, noise_sigma, half_noise,
                           (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
     for det in half.detections:
         spacing = 2.0 * nearest_spacing(det.corners)
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
         xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0)
-        xy = _resettle_slid_corners(level.smooth, det.ids, _final_corners(level.smooth, xy, det.ids, p), p)
+        xy = resettle_slid_corners(level.smooth, det.ids, final_corners(level.smooth, xy, det.ids, p), p)
         if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
@@ -356,7 +284,7 @@ def _outside_boards(pts: np.ndarray, boards: list[np.ndarray], shape: tuple[int,
     return mask[xy[:, 1], xy[:, 0]] == 0
 
 
-def _find_grids(level: _Level, p: DetectorParams, exclude: list[np.ndarray] | None = None
+def _find_grids(level: Level, p: DetectorParams, exclude: list[np.ndarray] | None = None
                 ) -> tuple[DetectionDebug, list[Grid]]:
     """Candidates, probe, sub-pixel and grouping on one level: the accepted points and their raw grids.
 
@@ -395,7 +323,7 @@ def _find_grids(level: _Level, p: DetectorParams, exclude: list[np.ndarray] | No
     return debug, grids
 
 
-def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: DetectorParams,
+def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: DetectorParams,
                        debug: DetectionDebug, provisional: bool = False) -> None:
     """Trim, complete, match to the target's boards and number each grid; appends to debug.detections.
 
@@ -410,16 +338,16 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
     and its quality is left empty (corners refined once, at the resolution they are reported at).
     """
     smooth = level.smooth
-    by_size = _boards_by_size(target)
+    by_size = boards_by_size(target)
     min_corners = min(b.n_corners for b in target.boards)
     finished = []
     for grid in grids:
         # A grid that already is a complete board needs no trimming: a stray outer line would change its size.
-        if not _is_full_board(grid, by_size):
+        if not is_full_board(grid, by_size):
             grid = trim_false_edges(grid, smooth, p.min_contrast)
         # Completion is for boards the probe half-saw, not for every fragment of clutter; a complete board
         # is still tried one line further on every side (it may be a sub-grid of a larger one).
-        full_board = _is_full_board(grid, by_size)
+        full_board = is_full_board(grid, by_size)
         if (len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) or full_board) \
                 and not (provisional and full_board):
             grid = complete_grid(grid, smooth, level.gx, level.gy, GRID_GROWTH_MAX_DIM, p, debug.accepted)
@@ -436,7 +364,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
         full = len(uv) == span[0] * span[1]
         boards = by_size.get(frozenset(int(s) for s in span), [])
         if not full or not boards:
-            _note_near_miss(notes, span, full, len(uv), target)
+            note_near_miss(notes, span, full, len(uv), target)
             continue
         # A named board not yet found takes the grid; when all are, the grid is another copy of the first.
         board = next((b for b in boards if b.name not in used_boards), boards[0])
@@ -445,7 +373,7 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
             notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
         # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
-        xy = _resettle_slid_corners(smooth, ids, _final_corners(smooth, xy, ids, p), p)
+        xy = resettle_slid_corners(smooth, ids, final_corners(smooth, xy, ids, p), p)
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
@@ -453,108 +381,17 @@ def _boards_from_grids(level: _Level, grids: list[Grid], target: Target, p: Dete
         quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows)))
         used_boards.add(board.name)
-    _number_copies(debug.detections)
+    number_copies(debug.detections)
     for note in notes:
         if note not in debug.notes:
             debug.notes.append(note)
 
 
-def _number_copies(detections: list[Detection]) -> None:
-    """Number the detections of each board name 0, 1, ... by position (centroid top to bottom, then left
-    to right), so that the numbering does not depend on the order the grids were found in."""
-    by_name: dict[str, list[Detection]] = {}
-    for d in detections:
-        by_name.setdefault(d.board, []).append(d)
-    for same in by_name.values():
-        if len(same) == 1:
-            same[0].copy = 0
-            continue
-        keys = [(float(d.corners[:, 1].mean()), float(d.corners[:, 0].mean())) for d in same]
-        for k, i in enumerate(sorted(range(len(same)), key=lambda j: keys[j])):
-            same[i].copy = k
-    detections.sort(key=lambda d: (d.board, d.copy))
-
-
-def _final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams,
-                   spacing: np.ndarray | None = None) -> np.ndarray:
-    """A board's final corners: cornerSubPix with the window from the grid's own spacing (``spacing``, or
-    the corners' nearest-neighbour distances), the corners on the board's rim again with a smaller window
-    where that continues the grid's lines better (refine_rim), then (refiner "saddle") the saddle fit."""
-    spacing = nearest_spacing(xy) if spacing is None else spacing
-    xy, window = refine_rim(smooth, refine_corners(smooth, xy, spacing), ids, spacing)
-    return saddle_refine(smooth, xy, window) if p.subpixel_refiner == "saddle" else xy
-
-
-def _resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
-    """Corners that slid along an edge, refined again from where their neighbours put them.
-
-    On a steeply slanted board cornerSubPix is ill-conditioned along thin squares and can slide a corner
-    along one of its edges by a good part of a square; the grid checks barely see a sideways slip of an
-    outer corner. Each corner is predicted from a local homography of its neighbours (leaving it out, all
-    corners in one batch); one further than SLID_FRACTION of a square from its prediction is refined again
-    from the prediction, and the new position is kept when it agrees with the prediction better.
-    """
-    out = xy.copy()
-    cols, rows = int(ids[:, 0].max()) + 1, int(ids[:, 1].max()) + 1
-    if len(ids) != cols * rows or min(cols, rows) < 3:
-        return out
-    spacing = nearest_spacing(xy)
-    index = {(int(c), int(r)): i for i, (c, r) in enumerate(ids)}
-    for _ in range(3):  # a slid corner misleads its neighbours' predictions: repeat once it is back
-        # cheap screen first: second differences along rows and columns (ends take their neighbours')
-        dense = np.empty((rows, cols, 2))
-        dense[ids[:, 1], ids[:, 0]] = out
-        bend = np.zeros((rows, cols))
-        for axis in (0, 1):
-            g = np.moveaxis(dense, axis, 0)
-            d2 = np.linalg.norm(g[:-2] - 2.0 * g[1:-1] + g[2:], axis=-1)
-            b = np.zeros(g.shape[:2])
-            b[1:-1] = d2
-            b[0], b[-1] = d2[0], d2[-1]
-            bend = np.maximum(bend, np.moveaxis(b, 0, axis))
-        flagged = bend[ids[:, 1], ids[:, 0]] > np.maximum(SLID_FRACTION * spacing, 1.5)
-        if not flagged.any():
-            break
-        grid = {k: out[i] for k, i in index.items()}
-        preds, keys, _sp = predict_holes(grid, [k for k, i in index.items() if flagged[i]])
-        if not keys:
-            break
-        sel = np.array([index[k] for k in keys])
-        pred = np.asarray(preds)
-        off = np.linalg.norm(out[sel] - pred, axis=1)
-        slid = off > np.maximum(SLID_FRACTION * spacing[sel], 1.5)
-        if not slid.any():
-            break
-        again = _final_corners(smooth, pred[slid], ids[sel][slid], p, spacing[sel][slid])
-        better = np.linalg.norm(again - pred[slid], axis=1) < off[slid]
-        if not better.any():
-            break
-        out[sel[slid][better]] = again[better]
-    return out
-
-
-def _corner_quality(level: _Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
+def _corner_quality(level: Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
     _ok, _dirs, meas = _probe(level.smooth, level.gx, level.gy, xy, probe_radii(nearest_spacing(xy), p), p,
                               max(16, p.probe_angles // 2))
     return probe_quality(meas, p)
-
-
-def _note_near_miss(notes: list[str], span: np.ndarray, full: bool, n: int, target: Target) -> None:
-    """Record a grid that matched no board: the most common cause is a board-size convention mistake
-    (or a board that is part of a larger grid). Small fragments, mostly clutter, are not worth a note."""
-    sizes = ", ".join(f"{b.cols}x{b.rows}" for b in target.boards)
-    if n < min(12, min(b.n_corners for b in target.boards)):
-        return
-    # The grid's labels have no preferred axis: say its size the way round the target says its own.
-    first = target.boards[0]
-    if (span[0] >= span[1]) != (first.cols >= first.rows):
-        span = span[::-1]
-    if full:
-        notes.append(f"found a {span[0]}x{span[1]} grid; the target says {sizes} inner corners")
-    else:
-        notes.append(f"found a partial grid of {n} corners spanning {span[0]}x{span[1]}; "
-                     f"the target says {sizes} inner corners")
 
 
 def detect(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> list[Detection]:

@@ -1,0 +1,64 @@
+"""The images one detection pass works on: the grey image (or a window of it), smoothed, and its gradients."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
+
+# The window's left edge on a multiple of this many pixels: OpenCV's vectorised filters then round every
+# pixel as they do on the whole image (a start off the vector grid moves pixels between vector and scalar code).
+_WINDOW_ALIGN_PX = 32
+
+
+class Level:
+    """The images one pyramid level works on; the gradients are computed on first use only (a level that
+    only refines corners found on a coarser one never needs them).
+
+    A level can be a window of its image: ``grey`` is then the window, ``origin`` (x, y) its top-left pixel
+    in the image and ``image`` the whole image (the covariances' noise is measured on all of it).
+    """
+
+    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None,
+                 origin: tuple[int, int] = (0, 0), image: np.ndarray | None = None) -> None:
+        self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
+        # estimate_noise_sigma of cv2.pyrDown(image) when the pyramid measured it (the covariances reuse it)
+        self.half_noise = half_noise
+        self.grey = grey
+        self.origin = np.array(origin, dtype=np.float64)
+        self.image = grey if image is None else image
+        self.smoothing_sigma = smoothing_sigma(self.noise_sigma)
+        self.smooth = smooth_image(grey, self.smoothing_sigma)
+        self._gradients: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def gx(self) -> np.ndarray:
+        """x gradient of the smoothed image (computed on first use)."""
+        return self._grads()[0]
+
+    @property
+    def gy(self) -> np.ndarray:
+        """y gradient of the smoothed image (computed on first use)."""
+        return self._grads()[1]
+
+    def _grads(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._gradients is None:
+            self._gradients = gradients(self.smooth)
+        return self._gradients
+
+
+def window_level(grey: np.ndarray, noise_sigma: float, half_noise: float | None,
+                  box: tuple[float, float, float, float]) -> Level:
+    """A level on the window of ``grey`` holding ``box`` (x0, y0, x1, y1 pixels), whose smoothed image and
+    gradients equal the whole image's within the box: the window reaches past it by the smoothing kernel
+    and the gradient stencil (clipped at the image's border, where both mirror the same way)."""
+    h, w = grey.shape
+    pad = int(np.ceil(2.5 * smoothing_sigma(noise_sigma))) + 2
+    x0 = max(0, int(math.floor(box[0])) - pad)
+    x0 -= x0 % _WINDOW_ALIGN_PX
+    y0 = max(0, int(math.floor(box[1])) - pad)
+    x1 = min(w, int(math.ceil(box[2])) + pad + 1)
+    y1 = min(h, int(math.ceil(box[3])) + pad + 1)
+    return Level(grey[y0:y1, x0:x1], noise_sigma, half_noise, (x0, y0), grey)
