@@ -294,7 +294,8 @@ def offline(folder: Path, truth: dict, n: int) -> dict:
     single thread, with it and with it replaced by a constant, alternating per frame so load drifts hit both
     alike; in the full search, in tracked verification and in the pose), and the pose from the same
     detections weighted by the covariances (the default, covariance_scale model) against unweighted
-    (covariance_scale residual): errors and NEES against the truth."""
+    (covariance_scale residual): errors, NEES and RMS error / sigma per axis against the truth, for the
+    searched detections and for the tracked ones (track_boards on the truth's extrapolated poses)."""
     from edgecal.config import packaged_config_path
     from edgecal.detection.tracking import track_boards
     from edgecal.pose import estimate_pose
@@ -308,7 +309,7 @@ def offline(folder: Path, truth: dict, n: int) -> dict:
     ablated = CovarianceTimer(ablate=True)
     t = {k: [] for k in ("search", "search_cov", "search_without", "track", "track_cov", "track_without",
                          "pose", "pose_unweighted")}
-    poses: dict = {"weighted": [], "unweighted": []}
+    poses: dict = {"weighted": [], "unweighted": [], "tracked_weighted": [], "tracked_unweighted": []}
     frames = truth["frames"][2:n + 2]
     for k, fr in enumerate(frames, start=2):
         images = [cv2.imread(str(folder / fr[s]), cv2.IMREAD_GRAYSCALE) for s in ("left", "right")]
@@ -326,8 +327,7 @@ def offline(folder: Path, truth: dict, n: int) -> dict:
                 t_search = time.thread_time() - t0
                 cov_search = inst.take()[1]
                 t0 = time.thread_time()
-                for im, pred in zip(images, predicted):
-                    track_boards(im, pred)
+                tracked = [track_boards(im, pred) for im, pred in zip(images, predicted)]
                 t_track = time.thread_time() - t0
                 cov_track = inst.take()[1]
             if inst is timer:
@@ -335,23 +335,30 @@ def offline(folder: Path, truth: dict, n: int) -> dict:
                 t["search_cov"].append(cov_search)
                 t["track"].append(t_track)
                 t["track_cov"].append(cov_track)
-                real = dets
+                real, real_tracked = dets, tracked
             else:
                 t["search_without"].append(t_search)
                 t["track_without"].append(t_track)
+        # The searched path (each image searched in full) and the tracked one (the boards verified where the
+        # truth's constant-velocity extrapolation predicts them, as the loop predicts from its last poses).
         for key, (left, right), settings in (
                 ("weighted", real, PoseSettings()),
-                ("unweighted", [_strip_covariances(d) for d in real], PoseSettings(covariance_scale="residual"))):
+                ("unweighted", [_strip_covariances(d) for d in real], PoseSettings(covariance_scale="residual")),
+                ("tracked_weighted", real_tracked, PoseSettings()),
+                ("tracked_unweighted", [_strip_covariances(d) for d in real_tracked],
+                 PoseSettings(covariance_scale="residual"))):
             t0 = time.thread_time()
             pose = estimate_pose(left, right, target, cams, settings)
-            t["pose" if key == "weighted" else "pose_unweighted"].append(time.thread_time() - t0)
+            if key in ("weighted", "unweighted"):
+                t["pose" if key == "weighted" else "pose_unweighted"].append(time.thread_time() - t0)
             if pose.valid:
                 dt = pose.t_m - np.array(fr["t_rig_robot_m"])
                 dth = Rotation.from_matrix(pose.R @ np.array(fr["R_rig_robot"]).T).as_rotvec()
                 e = np.concatenate([dt, dth])
                 poses[key].append({"frame": k, "position_mm": 1000 * float(np.linalg.norm(dt)),
                                    "rotation_deg": float(np.degrees(np.linalg.norm(dth))),
-                                   "nees": float(e @ np.linalg.solve(pose.covariance, e))})
+                                   "nees": float(e @ np.linalg.solve(pose.covariance, e)),
+                                   "error": e.tolist(), "sigma": np.sqrt(np.diag(pose.covariance)).tolist()})
     ms = {k: 1000 * float(np.median(v)) for k, v in t.items()}
     out: dict = {"frames": len(frames), "ms_per_stereo_frame": ms,
                  "covariance_share": {"search": float(np.sum(t["search_cov"]) / np.sum(t["search"])),
@@ -360,10 +367,21 @@ def offline(folder: Path, truth: dict, n: int) -> dict:
     for key, rows in poses.items():
         if rows:
             pos = [r["position_mm"] for r in rows]
+            ratio = np.sqrt(np.mean((np.array([r["error"] for r in rows]) / np.array([r["sigma"] for r in rows])) ** 2,
+                                    axis=0))
             out[key] = {"valid": len(rows), "position_median_mm": float(np.median(pos)),
                         "position_p95_mm": float(np.percentile(pos, 95)), "position_max_mm": float(np.max(pos)),
+                        "position_rms_mm": float(np.sqrt(np.mean(np.square(pos)))),
                         "rotation_max_deg": float(np.max([r["rotation_deg"] for r in rows])),
-                        "nees_mean": float(np.mean([r["nees"] for r in rows]))}
+                        "nees_mean": float(np.mean([r["nees"] for r in rows])),
+                        "rms_error_over_sigma": [round(float(v), 2) for v in ratio]}
+    for path in ("", "tracked_"):
+        w, u = poses[path + "weighted"], poses[path + "unweighted"]
+        both = {r["frame"]: r["position_mm"] for r in u}
+        pairs = [(r["position_mm"], both[r["frame"]]) for r in w if r["frame"] in both]
+        if pairs and path + "weighted" in out:
+            out[path + "weighted"]["better_than_unweighted"] = int(sum(a < b for a, b in pairs))
+            out[path + "weighted"]["compared"] = len(pairs)
     return out
 
 
@@ -380,12 +398,16 @@ def print_offline(o: dict, load: tuple[float, float]) -> None:
           f"{ms['track'] / ms['track_without']:.2f})")
     print(f"  pose: {ms['pose']:.2f} ms weighted (covariance_scale model), {ms['pose_unweighted']:.2f} ms unweighted "
           f"(residual)")
-    for key in ("weighted", "unweighted"):
+    for key in ("weighted", "unweighted", "tracked_weighted", "tracked_unweighted"):
         if key in o:
             x = o[key]
-            print(f"  pose {key:<10}: {x['valid']}/{o['frames']} valid, position median {x['position_median_mm']:.3f} "
-                  f"p95 {x['position_p95_mm']:.3f} max {x['position_max_mm']:.3f} mm, rotation max "
-                  f"{x['rotation_max_deg']:.4f} deg, mean NEES {x['nees_mean']:.1f}")
+            name = ("searched " + key) if not key.startswith("tracked") else key.replace("_", " ")
+            better = (f", better than unweighted in {x['better_than_unweighted']}/{x['compared']}"
+                      if "compared" in x else "")
+            print(f"  pose {name:<19}: {x['valid']}/{o['frames']} valid, position median {x['position_median_mm']:.3f} "
+                  f"p95 {x['position_p95_mm']:.3f} max {x['position_max_mm']:.3f} RMS {x['position_rms_mm']:.3f} mm, "
+                  f"rotation max {x['rotation_max_deg']:.4f} deg, mean NEES {x['nees_mean']:.1f}, RMS error / sigma "
+                  f"{x['rms_error_over_sigma']}{better}")
 
 
 def loop_covariance_cost(folder: Path, out: Path, truth: dict, args: argparse.Namespace, pairs: int) -> dict:

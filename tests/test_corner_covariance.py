@@ -4,6 +4,7 @@ exact truth, and unusable corners named without NaN (the full measurement is ben
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,22 +14,24 @@ from edgecal.detection.candidates import estimate_noise_sigma, smooth_image, smo
 from edgecal.detection.corner_covariance import (
     REASON_BORDER,
     REASON_DEGENERATE,
+    REASON_DISAGREE,
     REASON_FLAT,
     corner_covariance,
     covariance_noise_sigma,
+    grid_steps,
+    noise_kernel,
+    saddle_noise_term,
+    saddle_statistics,
 )
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.subpixel import refine_corners
+from edgecal.detection.subpixel import nearest_spacing, refine_corners, saddle_fit_setup
 from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
-from edgecal.synth.photometric import Photometric, apply_photometric
+from edgecal.synth.photometric import Photometric, apply_photometric, random_photometric
 from edgecal.synth.scenes import planar_view
 from edgecal.targets import planar_target
 
 TARGET = planar_target(9, 6, 25.0)
-
-
-CORNERSUBPIX = DetectorParams(subpixel_refiner="cornersubpix")
 
 
 def _nees(det, truth: np.ndarray) -> np.ndarray:
@@ -41,35 +44,85 @@ def _nees(det, truth: np.ndarray) -> np.ndarray:
     return np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov[near]), e)
 
 
-@pytest.mark.parametrize("photometric", ["clean", "normal", "hard", "light"])
-def test_normalised_error_matches_the_scatter(photometric: str) -> None:
-    """Mean e^T Sigma^-1 e near 2 (a consistent 2-D covariance) over a few renders of each condition.
+def _view(photometric: str, k: int):
+    """The k-th test render of a condition; "hard" without JPEG (see test_strong_jpeg_is_covered)."""
+    if photometric == "light":
+        phot = Photometric(blur_sigma=0.7, gradient=(0.6 * (-1) ** k, 0.45), vignetting=0.4,
+                           black_level=10, white_level=240, noise_sigma=2.0)
+        return planar_view([k, 71], photometric=phot)
+    if photometric == "hard":
+        phot = replace(random_photometric(np.random.default_rng([k, 72]), "hard"), jpeg_quality=None)
+        return planar_view([k, 72], photometric=phot)
+    if photometric == "foreshortened":
+        return planar_view([k, 73], photometric="normal", tilt_max_deg=78.0)
+    return planar_view([k, 72], photometric=photometric)
 
-    Ten views leave the mean a wider spread than bench/corner_noise.py's 1.5-3 over 40-80 (a view's
-    corners share its light and blur); a noise-only covariance would give 5-60 here. The model-error term
-    for uneven light is sized for cornerSubPix's bias, and its floor for cornerSubPix's error on clean
-    renders; the detector's default saddle fit is less biased and (since its 11x11 fit) 4x more accurate
-    on clean renders, so there and under uneven light its covariance is conservative (checked below: mean
-    0.8 on clean), and the consistency is checked on cornerSubPix's corners."""
-    values, saddle = [], []
-    for k in range(10):
-        if photometric == "light":
-            phot = Photometric(blur_sigma=0.7, gradient=(0.6 * (-1) ** k, 0.45), vignetting=0.4,
-                               black_level=10, white_level=240, noise_sigma=2.0)
-            view = planar_view([k, 71], photometric=phot)
-        else:
-            view = planar_view([k, 72], photometric=photometric)
-        params = CORNERSUBPIX if photometric in ("light", "clean") else None
+
+def _errors(photometric: str, params: DetectorParams | None = None, views: int = 10
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Errors (M, 2) and covariances (M, 2, 2) of the usable corners of ``views`` renders."""
+    errors, covs = [], []
+    for k in range(views):
+        view = _view(photometric, k)
+        if not view.truth["boards"]:
+            continue
+        truth = view.corners(0)
         for det in edgecal.detect(view.image, TARGET, params):
             assert det.covariance is not None and det.covariance.shape == (len(det.corners), 2, 2)
-            values.append(_nees(det, view.corners(0)))
-        if params is not None:
-            saddle += [_nees(det, view.corners(0)) for det in edgecal.detect(view.image, TARGET)]
-    nees = np.concatenate(values)
+            ok = det.usable()
+            xy, cov = det.corners[ok], det.covariance[ok]
+            d = np.linalg.norm(xy[:, None] - truth[None], axis=2)
+            j = d.argmin(axis=1)
+            near = d[np.arange(len(j)), j] < 1.5
+            errors.append(xy[near] - truth[j[near]])
+            covs.append(cov[near])
+    return np.concatenate(errors), np.concatenate(covs)
+
+
+@pytest.mark.parametrize("photometric", ["clean", "normal", "hard", "light", "foreshortened"])
+@pytest.mark.parametrize("refiner", ["saddle", "cornersubpix"])
+def test_normalised_error_matches_the_scatter(photometric: str, refiner: str) -> None:
+    """Mean e^T Sigma^-1 e near 2 (a consistent 2-D covariance) over a few renders of each condition, for
+    the saddle fit (the detector's default) and cornerSubPix (tracking's refinement).
+
+    Ten views leave the mean a wider spread than bench/corner_noise.py's 1.5-3 over 40-80 (a view's
+    corners share its light and blur). Measured on the saddle fit's corners: its noise term alone gives
+    5.6-22 (2.3 on hard, where noise dominates), cornerSubPix's covariance (before the saddle model) 0.9
+    under uneven light and 1.2 foreshortened, the model without its light term 5.6 under uneven light."""
+    # 20 views of the strongly foreshortened condition: its steepest corners give a heavy tail
+    views = 20 if photometric == "foreshortened" else 10
+    e, cov = _errors(photometric, DetectorParams(subpixel_refiner=refiner), views)
+    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov), e)
     assert len(nees) > 200
-    assert 1.2 < nees.mean() < 4.0, nees.mean()
-    if saddle:
-        assert np.concatenate(saddle).mean() < 4.0  # conservative, never optimistic
+    # Since the 11x11 saddle fit (0.004-0.006 px on clean renders) its covariance is conservative on clean
+    # renders (1.2 here; README): the floor and pixel locking were measured without noise, which dithers
+    # the locking away. A covariance 2x too large would give 0.3.
+    low = 0.8 if (refiner, photometric) == ("saddle", "clean") else 1.3
+    assert low < nees.mean() < 4.0, nees.mean()
+
+
+@pytest.mark.parametrize("photometric", ["normal", "foreshortened"])
+def test_covariance_shape_follows_the_errors(photometric: str) -> None:
+    """The saddle fit's covariances are not more elongated than its errors: the mean squared error along
+    each covariance's minor and major axis over the variance there are both near 1 (a model error in the
+    shape of H^-1 or A^-1 gave 0.44-0.64 along the major axis and covariances 1.7-2.2x elongated)."""
+    e, cov = _errors(photometric, views=20)
+    w, v = np.linalg.eigh(cov)
+    along = np.einsum("nji,nj->ni", v, e)
+    minor, major = np.mean(along ** 2 / w, axis=0)
+    assert 0.75 < minor / major < 1.33 and max(minor, major) < 2.5, (minor, major)
+
+
+@pytest.mark.xfail(strict=True, reason="strong JPEG (quality < 70): the noise estimate misses the noise that "
+                                       "survives compression at the corner's scale (known gap, README)")
+def test_strong_jpeg_is_covered() -> None:
+    """A hard render through JPEG quality 62: the covariance is 2-4x too small (mean normalised error 15-25)."""
+    view = planar_view([7, 72], photometric="hard")
+    assert view.truth["render"]["photometric"]["jpeg_quality"] == 62
+    truth = view.corners(0)
+    det = edgecal.detect(view.image, TARGET)[0]
+    nees = _nees(det, truth)
+    assert nees.mean() < 4.0, nees.mean()
 
 
 def test_noise_term_alone_matches_noise_only_repeats() -> None:
@@ -84,11 +137,47 @@ def test_noise_term_alone_matches_noise_only_repeats() -> None:
     rng = np.random.default_rng(1)
     noisy = [np.clip(np.rint(clean + rng.normal(0, noise, clean.shape)), 0, 255).astype(np.uint8) for _ in range(12)]
     cov, reasons = corner_covariance(noisy[0], smooth_image(view.image, sigma), sigma, start,
-                                     np.full(len(start), 30.0))
+                                     np.full(len(start), 30.0), refiner="cornersubpix")
     assert not any(reasons)
     errs = np.array([refine_corners(smooth_image(im, sigma), start, np.full(len(start), 30.0)) - start for im in noisy])
     nees = np.einsum("kni,nij,knj->kn", errs, np.linalg.inv(cov), errs)
     assert 1.5 < nees.mean() < 2.8, nees.mean()
+
+
+def test_saddle_noise_term_matches_noise_only_repeats() -> None:
+    """The saddle fit's noise term against repeats of one render with fresh noise, relative to the
+    noise-free detection: the noise carried through the fit without any fitted constant."""
+    view = planar_view(5, photometric=Photometric(blur_sigma=1.0, black_level=40, white_level=160))
+    clean = view.image.astype(np.float64)
+    ref = edgecal.detect(view.image, TARGET)[0]
+    index = {tuple(i): j for j, i in enumerate(ref.ids.tolist())}
+    rng = np.random.default_rng(1)
+    errors, covs = [], []
+    for _ in range(12):
+        noisy = np.clip(np.rint(clean + rng.normal(0, 5.0, clean.shape)), 0, 255).astype(np.uint8)
+        sigma = smoothing_sigma(estimate_noise_sigma(noisy))
+        for det in edgecal.detect(noisy, TARGET):
+            spacing = nearest_spacing(det.corners)
+            fit, half, blur_half, blur = saddle_fit_setup(spacing)
+            sd = saddle_statistics(smooth_image(noisy, sigma), det.corners, blur, noise_kernel(sigma), fit, half,
+                                   blur_half, spacing, grid_steps(det.ids, det.corners))
+            j = np.array([index[tuple(i)] for i in det.ids.tolist()])
+            errors.append(det.corners - ref.corners[j])
+            covs.append(saddle_noise_term(sd, covariance_noise_sigma(noisy) ** 2))
+    e, cov = np.concatenate(errors), np.concatenate(covs)
+    assert len(e) > 500
+    nees = np.einsum("ni,nij,nj->n", e, np.linalg.inv(cov), e)
+    assert 1.5 < nees.mean() < 2.8, nees.mean()
+
+
+def test_grid_steps() -> None:
+    """Central differences inside the grid, one-sided at its ends, NaN for a lone corner."""
+    ids = np.array([[0, 0], [1, 0], [2, 0], [0, 1], [5, 5]])
+    xy = np.array([[0.0, 0.0], [10.0, 1.0], [22.0, 2.0], [0.0, 9.0], [50.0, 50.0]])
+    steps = grid_steps(ids, xy)
+    assert np.allclose(steps[1, 0], [11.0, 1.0]) and np.allclose(steps[0, 0], [10.0, 1.0])
+    assert np.allclose(steps[2, 0], [12.0, 1.0]) and np.allclose(steps[0, 1], [0.0, 9.0])
+    assert np.isnan(steps[1, 1]).all() and np.isnan(steps[4]).all()
 
 
 def test_tracked_corners_have_covariances() -> None:
@@ -108,7 +197,7 @@ def test_unusable_corners_are_named_and_json_has_no_nan() -> None:
     sigma = smoothing_sigma(0.0)
     smooth = smooth_image(img, sigma)
     pts = np.array([[80.0, 30.0], [20.0, 90.0], [2.0, 2.0], [130.0, 60.0]])
-    cov, reasons = corner_covariance(img, smooth, sigma, pts, np.full(4, 20.0))
+    cov, reasons = corner_covariance(img, smooth, sigma, pts, np.full(4, 20.0), refiner="saddle")
     assert reasons == [REASON_DEGENERATE, REASON_FLAT, REASON_BORDER, REASON_FLAT]
     assert np.isnan(cov).all()
     view = planar_view(4, photometric="normal")
@@ -120,6 +209,22 @@ def test_unusable_corners_are_named_and_json_has_no_nan() -> None:
     assert out["covariance_px2"][3] is None and len(out["covariance_px2"]) == len(det.corners)
     assert out["unusable"] == [{"id": [int(v) for v in det.ids[3]], "reason": REASON_DEGENERATE}]
     assert not det.usable()[3] and det.usable().sum() == len(det.corners) - 1
+
+
+def test_corner_the_saddle_fit_would_move_far_is_unusable() -> None:
+    """A corner 1.4 px off its X-junction (where the detector keeps cornerSubPix's position because the
+    saddle fit would move it further than 1 px) is unusable with the reason, not given a covariance (on
+    real photos such rim corners otherwise stayed in the calibration with a huge sigma)."""
+    view = planar_view(4, photometric="normal")
+    det = edgecal.detect(view.image, TARGET)[0]
+    pts = det.corners.copy()
+    pts[10] += [1.0, -1.0]
+    sigma = smoothing_sigma(estimate_noise_sigma(view.image))
+    steps = grid_steps(det.ids, det.corners)
+    cov, reasons = corner_covariance(view.image, smooth_image(view.image, sigma), sigma, pts, refiner="saddle",
+                                     steps=steps)
+    assert reasons[10] == REASON_DISAGREE and np.isnan(cov[10]).all()
+    assert reasons.count("") == len(pts) - 1
 
 
 def test_noise_estimate_sees_compressed_noise() -> None:

@@ -28,7 +28,7 @@ from edgecal.detection.candidates import (
     snap_to_saddle,
 )
 from edgecal.detection.completion import complete_grid, trim_false_edges
-from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma
+from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma, grid_steps
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
 from edgecal.detection.ordering import assign_ids, grid_is_regular
@@ -123,7 +123,7 @@ def detect_debug(image: np.ndarray, target: Target, params: DetectorParams | Non
     p = params or DEFAULT_PARAMS
     grey = as_grey(image)
     debug, level = _search(grey, target, p)
-    add_covariances(debug.detections, level)
+    add_covariances(debug.detections, level, p)
     if not all_boards_found(debug.detections, target) and _blooming(grey, p):
         _add_bloomed_boards(grey, target, p, debug)
     return debug
@@ -150,20 +150,24 @@ def _add_bloomed_boards(grey: np.ndarray, target: Target, p: DetectorParams, deb
     new = [d for d in extra.detections if d.board not in found]
     if not new:
         return
-    add_covariances(new, level)
+    add_covariances(new, level, p)
     debug.detections.extend(new)
     number_copies(debug.detections)
     debug.notes.append("overexposed: boards found in the image eroded by 3x3 (white bloomed over the corners)")
 
 
-def add_covariances(detections: list[Detection], level: Level) -> None:
-    """Fill in covariance and unusable of ``detections`` (corners refined on ``level``), one call for all."""
+def add_covariances(detections: list[Detection], level: Level, p: DetectorParams) -> None:
+    """Fill in covariance and unusable of ``detections`` (corners refined on ``level`` by ``p``'s refiner), one
+    call for all."""
     if not detections:
         return
     xy = np.concatenate([d.corners for d in detections]) - level.origin
     spacing = np.concatenate([nearest_spacing(d.corners) for d in detections])
     noise = covariance_noise_sigma(level.image, level.half_noise)
-    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise)
+    steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
+    boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
+    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
+                                     refiner=p.subpixel_refiner, steps=steps, boards=boards)
     start = 0
     for d in detections:
         d.covariance = cov[start:start + len(d.corners)]

@@ -349,7 +349,14 @@ def saddle_refine(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray, max_
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
         return pts.copy()
-    sigma = np.clip(_SADDLE_BLUR_PER_SPACING * np.asarray(spacing, dtype=np.float64), *_SADDLE_BLUR_SIGMA)
-    return _saddle_kernel(np.ascontiguousarray(smooth, np.float32), pts, np.ascontiguousarray(sigma),
-                          np.ascontiguousarray(_SADDLE_FIT[:5]), _SADDLE_HALF, _SADDLE_BLUR_MAX,
-                          _SADDLE_ITERATIONS, float(max_move_px), _SADDLE_CONVERGED_PX)
+    fit, half, blur_half, sigma = saddle_fit_setup(spacing)
+    return _saddle_kernel(np.ascontiguousarray(smooth, np.float32), pts, sigma, np.ascontiguousarray(fit[:5]),
+                          half, blur_half, _SADDLE_ITERATIONS, float(max_move_px), _SADDLE_CONVERGED_PX)
+
+
+def saddle_fit_setup(spacing: np.ndarray) -> tuple[np.ndarray, int, int, np.ndarray]:
+    """What saddle_refine fits with, for the covariance of its corners (corner_covariance repeats the fit):
+    the weighted pseudo-inverse (6, (2 half + 1)^2), the fit's half-width, the extra smoothing kernel's
+    half-width and its sigma per corner (N,) for the local square sizes ``spacing`` (N,) px."""
+    sigma = np.clip(_SADDLE_BLUR_PER_SPACING * np.asarray(spacing, dtype=np.float64).reshape(-1), *_SADDLE_BLUR_SIGMA)
+    return _SADDLE_FIT, _SADDLE_HALF, _SADDLE_BLUR_MAX, np.ascontiguousarray(sigma)

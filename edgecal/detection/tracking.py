@@ -253,7 +253,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     # The corners' covariances, all boards in one call, on the crop they were refined on.
     if found:
         cov, reasons = corner_covariance(crop, smooth, sigma, np.concatenate([d.corners for d in found]) - offset,
-                                         np.concatenate(windows))
+                                         np.concatenate(windows), refiner="cornersubpix")
         bounds = np.cumsum([0] + [len(d.corners) for d in found])
         for d, i, j in zip(found, bounds[:-1], bounds[1:]):
             d.covariance, d.unusable = cov[i:j], reasons[i:j]
