@@ -68,6 +68,8 @@ STAGES = (
     ("edgecal.detection.board_corners", "refine_corners", "subpixel"),
     ("edgecal.detection.board_corners", "nearest_spacing", "spacing"),
     ("edgecal.detection.board_corners", "saddle_refine", "saddle"),
+    ("edgecal.detection.board_corners", "refine_rim", "rim"),
+    ("edgecal.detection.subpixel", "refine_corners", "subpixel"),
     ("edgecal.detection.detector", "resettle_slid_corners", "resettle"),
 )
 
