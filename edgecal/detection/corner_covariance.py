@@ -46,7 +46,13 @@ import math
 import numpy as np
 from numba import njit
 
-from edgecal.detection.subpixel import REFINERS, nearest_spacing, saddle_fit_setup, subpixel_window
+from edgecal.detection.subpixel import (
+    REFINERS,
+    fit_coefficients,
+    nearest_spacing,
+    saddle_fit_setup,
+    subpixel_window,
+)
 
 # Columns of the per-corner window statistics returned by window_statistics.
 W_AXX, W_AXY, W_AYY = 0, 1, 2          # A = sum w g g^T (grey levels^2 per pixel^2)
@@ -380,12 +386,7 @@ def saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray,
                 for k in range(nk):
                     acc += rows[a + k, b] * kern[k]
                 win[a * n_fit + b] = acc
-        c = np.zeros(6)
-        for j in range(6):
-            acc = 0.0
-            for q in range(n_fit * n_fit):
-                acc += fit[j, q] * win[q]
-            c[j] = acc
+        c = fit_coefficients(fit, win, 6)
         hxx = 2.0 * c[0]
         hxy = c[1]
         hyy = 2.0 * c[2]

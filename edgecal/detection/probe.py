@@ -35,46 +35,39 @@ M_FIRST_SIGN = 4    # +1 if the sector after theta_1 is white, -1 if black
 N_MEASURES = 5
 
 
-@njit(cache=True, nogil=True)
-def _bilinear(img: np.ndarray, x: float, y: float) -> float:
-    """Bilinear sample at (x, y), OpenCV convention (integer = pixel centre); 0 outside the image."""
-    h, w = img.shape
+@njit(cache=True, nogil=True, inline="always")
+def _bilinear_cell(h: int, w: int, x: float, y: float) -> tuple[bool, int, int, float, float]:
+    """The pixel cell of (x, y) in an h x w image and the fractions within it (OpenCV convention: integer =
+    pixel centre); False outside the image."""
     if x < 0.0 or y < 0.0 or x > w - 1.0 or y > h - 1.0:
-        return 0.0
-    x0 = int(x)
-    y0 = int(y)
-    if x0 >= w - 1:
-        x0 = w - 2
-    if y0 >= h - 1:
-        y0 = h - 2
-    fx = x - x0
-    fy = y - y0
+        return False, 0, 0, 0.0, 0.0
+    x0 = min(int(x), w - 2)
+    y0 = min(int(y), h - 2)
+    return True, x0, y0, x - x0, y - y0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _interpolate(img: np.ndarray, x0: int, y0: int, fx: float, fy: float) -> float:
     top = img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx
     bottom = img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx
     return top * (1.0 - fy) + bottom * fy
 
 
 @njit(cache=True, nogil=True)
+def _bilinear(img: np.ndarray, x: float, y: float) -> float:
+    """Bilinear sample at (x, y), OpenCV convention (integer = pixel centre); 0 outside the image."""
+    inside, x0, y0, fx, fy = _bilinear_cell(img.shape[0], img.shape[1], x, y)
+    return _interpolate(img, x0, y0, fx, fy) if inside else 0.0
+
+
+@njit(cache=True, nogil=True)
 def _bilinear_pair(ga: np.ndarray, gb: np.ndarray, x: float, y: float) -> tuple[float, float]:
-    """_bilinear of two images of one shape at the same point: the weights are computed once (the probe
+    """_bilinear of two images of one shape at the same point: the cell and weights are found once (the probe
     samples both gradient images at every point of every ray)."""
-    h, w = ga.shape
-    if x < 0.0 or y < 0.0 or x > w - 1.0 or y > h - 1.0:
+    inside, x0, y0, fx, fy = _bilinear_cell(ga.shape[0], ga.shape[1], x, y)
+    if not inside:
         return 0.0, 0.0
-    x0 = int(x)
-    y0 = int(y)
-    if x0 >= w - 1:
-        x0 = w - 2
-    if y0 >= h - 1:
-        y0 = h - 2
-    fx = x - x0
-    fy = y - y0
-    top = ga[y0, x0] * (1.0 - fx) + ga[y0, x0 + 1] * fx
-    bottom = ga[y0 + 1, x0] * (1.0 - fx) + ga[y0 + 1, x0 + 1] * fx
-    a = top * (1.0 - fy) + bottom * fy
-    top = gb[y0, x0] * (1.0 - fx) + gb[y0, x0 + 1] * fx
-    bottom = gb[y0 + 1, x0] * (1.0 - fx) + gb[y0 + 1, x0 + 1] * fx
-    return a, top * (1.0 - fy) + bottom * fy
+    return _interpolate(ga, x0, y0, fx, fy), _interpolate(gb, x0, y0, fx, fy)
 
 
 @njit(cache=True, nogil=True)

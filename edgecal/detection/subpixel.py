@@ -259,6 +259,19 @@ def _saddle_fit_matrix() -> np.ndarray:
 _SADDLE_FIT = _saddle_fit_matrix()
 
 
+@njit(cache=True, nogil=True, inline="always")
+def fit_coefficients(fit: np.ndarray, win: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` coefficients of the saddle fit's quadratic: rows of its weighted pseudo-inverse ``fit``
+    applied to the window's values ``win`` (the fit and its covariance, corner_covariance, share it)."""
+    c = np.zeros(n)
+    for j in range(n):
+        acc = 0.0
+        for q in range(win.shape[0]):
+            acc += fit[j, q] * win[q]
+        c[j] = acc
+    return c
+
+
 @njit(cache=True, nogil=True)
 def _saddle_kernel(smooth: np.ndarray, pts: np.ndarray, sigma: np.ndarray, fit: np.ndarray, half: int,
                    blur: int, iterations: int, max_move: float, converged: float) -> np.ndarray:
@@ -320,12 +333,7 @@ def _saddle_kernel(smooth: np.ndarray, pts: np.ndarray, sigma: np.ndarray, fit: 
                 for b in range(n_fit):
                     win[a * n_fit + b] = ((patch[a, b] * (1.0 - fx) + patch[a, b + 1] * fx) * (1.0 - fy)
                                           + (patch[a + 1, b] * (1.0 - fx) + patch[a + 1, b + 1] * fx) * fy)
-            c = np.zeros(5)
-            for j in range(5):
-                acc = 0.0
-                for q in range(n_fit * n_fit):
-                    acc += fit[j, q] * win[q]
-                c[j] = acc
+            c = fit_coefficients(fit, win, 5)
             det = 4.0 * c[0] * c[2] - c[1] * c[1]
             if not det < 0.0:  # an extremum or flat: no saddle here
                 ok = False
