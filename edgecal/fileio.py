@@ -102,6 +102,20 @@ def _writable_folder(folder: Path, create: bool) -> None:
                          "choose another output path or fix the folder's permissions)")
 
 
+def make_folders(folder: str | Path) -> Path:
+    """Create ``folder`` and its parents if missing; InputError naming it when the system refuses (a read-only
+    or virtual file system such as /proc, no space, a file in the way)."""
+    f = Path(folder)
+    try:
+        f.mkdir(parents=True, exist_ok=True)
+    except PermissionError:
+        raise permission_denied(f, "output folder") from None
+    except OSError as exc:
+        raise InputError(f"{f}: cannot create the folder ({exc.strerror or type(exc).__name__}); "
+                         "choose another output path") from None
+    return f
+
+
 def check_outputs(paths: Iterable[str | Path], force: bool, create_folders: bool = False) -> None:
     """Refuse, before any work is done, outputs that could not be written or would clobber a file.
 
@@ -236,7 +250,7 @@ def write_atomic_set(files: Mapping[_PathT, bytes], durable: bool = True) -> Non
             path = Path(raw)
             folder = path.parent
             if folder not in dir_fds:
-                folder.mkdir(parents=True, exist_ok=True)
+                make_folders(folder)
                 dir_fds[folder] = os.open(folder, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
                 key = str(folder.resolve())
                 if key not in _swept:

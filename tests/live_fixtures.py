@@ -178,4 +178,8 @@ def bad_rigs(truth_rig: dict, good_rig: Path, folder: Path) -> dict[str, Path]:
         rig = copy.deepcopy(truth_rig)
         rig["left"]["K"][0][0] = fx
         rigs[name] = write_rig_yaml(rig, folder / f"{name.replace(' ', '-')}-rig.yaml")
+    for name, scale in (("baseline in mm", 1000.0), ("absurd baseline", 1e300)):
+        rig = copy.deepcopy(truth_rig)
+        rig["T_right_left_mm"] = [scale * float(v) for v in rig["T_right_left_mm"]]
+        rigs[name] = write_rig_yaml(rig, folder / f"{name.replace(' ', '-')}-rig.yaml")
     return rigs

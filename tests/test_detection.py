@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -289,6 +290,15 @@ def test_cli_unreadable_image_and_bad_target_field(tmp_path) -> None:
     target.write_text("name: t\nboards:\n  - name: a\n    inner_corners: [9, 6]\n    square_mm: -3\n")
     res = _cli("detect", "--target", str(target), str(bad))
     assert res.returncode == 2 and "boards[0].square_mm" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_cli_draw_folder_that_cannot_be_made_is_one_line(tmp_path) -> None:
+    """/proc takes no new folders (for root too, whom the permission check lets through): one line, exit 2."""
+    image = tmp_path / "grey.png"
+    image.write_bytes(cv2.imencode(".png", np.zeros((40, 50), np.uint8))[1].tobytes())
+    res = _cli("detect", "--board", "9x6", "--draw", "/proc/edgecal-no-such/overlays", str(image))
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "/proc/edgecal-no-such" in res.stderr
 
 
 # --- A board inside a larger grid; several boards of one size ------------------------------------------

@@ -53,7 +53,8 @@ def broken_configs(folder: Path, truth: dict, tmp: Path) -> dict[str, tuple[dict
 
 
 CASES = ("port 5560x", "port 99999", "port abc", "port *", "port 0", "no port", "remote", "rig text file",
-         "rig no nodes", "rig bad node", "rig nan focal", "rig zero focal", "rig size differs from the replay's",
+         "rig no nodes", "rig bad node", "rig nan focal", "rig zero focal", "rig baseline in mm",
+         "rig absurd baseline", "rig size differs from the replay's",
          "rig size differs from the cameras'", "replay path missing", "replay without frames",
          "replay of single images", "one camera")
 

@@ -302,6 +302,10 @@ class _RigReader:
         return CameraModel(k[0, 0], k[1, 1], k[0, 2], k[1, 2], lens, d[:n_params], size)
 
 
+# Longer than any stereo rig's baseline: a T this long is a unit mistake (mm for m) or a broken file.
+MAX_BASELINE_M = 20.0
+
+
 def load_rig(path: str | Path) -> RigFile:
     """Read a rig.yaml written by :func:`write_calibration` (or any file with the same OpenCV nodes).
 
@@ -331,8 +335,11 @@ def load_rig(path: str | Path) -> RigFile:
             if abs(np.linalg.det(rotation) - 1) > 1e-6 or not np.allclose(rt, np.eye(3), atol=1e-6):
                 raise r.fail("R", "is not a rotation matrix (R R^T = I, det R = 1)")
             translation = np.ravel(r.matrix("T", ((3, 1), (1, 3))))
-            if not np.linalg.norm(translation) > 0:
+            if not np.abs(translation).max() > 0:
                 raise r.fail("T", "is zero: a stereo rig needs a baseline")
+            if np.abs(translation).max() > MAX_BASELINE_M:
+                raise r.fail("T", f"is {np.abs(translation).max():.3g} m long, more than any stereo rig's "
+                                  f"{MAX_BASELINE_M:g} m: T is in metres (a T in mm is 1000x too large)")
             rig.stereo = StereoRig(cams[0], cams[1], rotation, translation)
             std_r = r.matrix("R_std_rad", ((3, 1), (1, 3)), required=False, finite=False)
             std_t = r.matrix("T_std_m", ((3, 1), (1, 3)), required=False, finite=False)

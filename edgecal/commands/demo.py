@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from edgecal.commands.argtypes import positive_int
 from edgecal.errors import EdgecalError, InputError
-from edgecal.fileio import check_outputs, png_bytes, write_atomic
+from edgecal.fileio import check_outputs, make_folders, png_bytes, write_atomic
 
 ENDPOINT = "tcp://127.0.0.1:5561"     # not the default 5560: a running `edgecal run` must not clash
 
@@ -188,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
     if (out / "rig.yaml").exists() and not args.force:
         raise InputError(f"{out}: holds an earlier demo (rig.yaml); use --force to replace it or another --out")
     check_outputs([out / "rig.yaml"], force=True, create_folders=True)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folders(out)
     t0 = time.monotonic()
     print(f"1. calibration box rendered for the robot's stereo rig -> {out / 'box'}", flush=True)
     truth = render_box_pair(args.seed, out)

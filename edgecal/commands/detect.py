@@ -12,7 +12,7 @@ from edgecal.commands.argtypes import pixel_count, positive_float
 from edgecal.detection.detector import detect_debug
 from edgecal.detection.params import DEFAULT_PARAMS_FILE_HINT, DetectorParams, load_params
 from edgecal.errors import EdgecalError
-from edgecal.fileio import check_outputs
+from edgecal.fileio import check_outputs, make_folders
 from edgecal.images import DEFAULT_MAX_PIXELS, expand_image_args, load_grey
 from edgecal.targets import Target, load_target, parse_board_spec
 
@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     if draw_dir is not None:
         from edgecal.detection.draw import write_overlay  # only with --draw: drawing is not on the hot path
         check_outputs([draw_dir / "overlay.png"], force=True, create_folders=True)  # before the first image
-        draw_dir.mkdir(parents=True, exist_ok=True)
+        make_folders(draw_dir)
     failed = 0
     for path in expand_image_args(args.images):
         try:

@@ -15,7 +15,7 @@ from pathlib import Path
 import zmq.auth
 
 from edgecal.errors import InputError, exception_summary
-from edgecal.fileio import check_outputs, permission_denied
+from edgecal.fileio import check_outputs, make_folders, permission_denied
 
 PUBLIC_SUFFIX = ".key"
 SECRET_SUFFIX = ".key_secret"
@@ -83,7 +83,7 @@ def make_key_pair(folder: str | Path, name: str, force: bool = False) -> tuple[P
     out = Path(folder)
     public, secret = out / f"{name}{PUBLIC_SUFFIX}", out / f"{name}{SECRET_SUFFIX}"
     check_outputs([public, secret], force, create_folders=True)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folders(out)
     old = os.umask(0o077)          # the secret file is never readable by others, not even for a moment
     try:
         zmq.auth.create_certificates(out, name)
