@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -154,6 +155,17 @@ def start_daemon(config: Path, notify: NotifySocket, log: Path) -> subprocess.Po
     env = {**os.environ, "NOTIFY_SOCKET": notify.path, "NUMBA_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "edgecal", "run", "--config", str(config)], env=env,
                             stdout=log.open("wb"), stderr=subprocess.STDOUT)
+
+
+def stop_daemon(proc: subprocess.Popen, timeout_s: float = 10.0) -> int | None:
+    """SIGTERM the daemon and wait for it (killed if it does not end in ``timeout_s``); its exit code."""
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    return proc.returncode
 
 
 def end_daemon(proc: subprocess.Popen, *listeners: MessageCollector | NotifySocket) -> None:

@@ -23,7 +23,7 @@ from edgecal.errors import ConfigError
 from edgecal.publish.subscriber import MessageCollector, PoseSubscriber
 from edgecal.stream import LiveLoop, load_live_config
 
-from .live_fixtures import free_endpoint, render_robot, wait_until, write_config
+from .live_fixtures import free_endpoint, render_robot, stop_daemon, wait_until, write_config
 
 
 @pytest.fixture(scope="module")
@@ -179,12 +179,7 @@ def test_idle_connections_cannot_starve_a_subscriber(robot: Path, tmp_path: Path
             c.close()
         if sub is not None:
             sub.close()
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_daemon(proc)
     assert proc.returncode == 0, log.read_text()[-2000:]
 
 
@@ -252,10 +247,5 @@ def test_subscribers_that_complete_the_handshake_cannot_take_the_descriptors(rob
             s.close()
         ctx.term()
         first.close()
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_daemon(proc)
     assert proc.returncode == 0, log.read_text()[-2000:]
