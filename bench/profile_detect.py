@@ -43,6 +43,7 @@ DATA = Path(os.environ.get("EDGECAL_DATA", REPO.parent / "shared" / "data"))
 STAGES = (
     ("edgecal.detection.detector", "as_grey", "convert"),
     ("edgecal.detection.detector", "estimate_noise_sigma", "noise"),
+    ("edgecal.detection.detector", "half_resolution_noise_sigma", "noise"),
     ("edgecal.detection.levels", "estimate_noise_sigma", "noise"),
     ("edgecal.detection.levels", "smooth_image", "smooth"),
     ("edgecal.detection.levels", "gradients", "gradients"),

@@ -425,6 +425,61 @@ def test_chess_filter_keeps_board_corners_and_drops_noise() -> None:
     assert chess_filter(smooth, pts, rings, thr).mean() < 0.01
 
 
+def test_half_resolution_noise_is_the_float_pyramid_estimate() -> None:
+    """half_resolution_noise_sigma's one strided pass over the full-resolution image gives, at every sample,
+    the Laplacian-like mask of cv2.pyrDown's float image, and the noise of white noise (where the uint8
+    pyramid's estimate / 0.273 says about half), also when JPEG has removed the pixel-level noise."""
+    from edgecal.detection.candidates import (
+        HALF_NOISE_GAIN,
+        _half_noise_responses,
+        estimate_noise_sigma,
+        half_resolution_noise_sigma,
+    )
+    from edgecal.synth.photometric import Photometric, apply_photometric
+
+    rng = np.random.default_rng(3)
+    grey = np.clip(128 + 20 * rng.standard_normal((83, 101)), 0, 255).astype(np.uint8)
+    half = cv2.pyrDown(grey.astype(np.float32)).astype(np.float64)
+    mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float64)
+    stride = 6  # even: every sample's centre (x + 4, y + 4) is a half-resolution pixel
+    got = _half_noise_responses(grey, stride) / 256.0
+    want = [abs((half[cy - 1:cy + 2, cx - 1:cx + 2] * mask).sum())
+            for y in range(0, 83 - 8, stride) for x in range(0, 101 - 8, stride)
+            for cy, cx in [((y + 4) // 2, (x + 4) // 2)]]
+    assert got == pytest.approx(want, abs=1e-3)
+    # the 1-D kernel on full-resolution pixels: pyrDown's binomial at the mask's three half-resolution taps
+    taps = np.convolve([1.0, 0.0, -2.0, 0.0, 1.0], np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0)
+    assert HALF_NOISE_GAIN == pytest.approx((taps ** 2).sum())
+
+    radiance = np.full((480, 640), 0.5, np.float32)
+    white = apply_photometric(radiance, Photometric(noise_sigma=5.0), rng)
+    assert half_resolution_noise_sigma(white) == pytest.approx(5.0, rel=0.1)
+    assert estimate_noise_sigma(white) == pytest.approx(5.0, rel=0.1)
+    assert estimate_noise_sigma(cv2.pyrDown(white)) / 0.273 < 3.0  # what the detector took before
+    jpeg = apply_photometric(radiance, Photometric(noise_sigma=5.0, jpeg_quality=70), rng)
+    assert estimate_noise_sigma(jpeg) < 2.0                  # pixel-level noise removed
+    assert half_resolution_noise_sigma(jpeg) > 3.5           # the noise at a corner's scale stays
+
+
+def test_full_search_thresholds_use_the_image_noise() -> None:
+    """A noisy frame without a board is searched at full resolution with thresholds for its noise (it had
+    about half of it, and ~6x the candidates on bench/live.py's hard frames) and the smoothing it was tuned
+    with (noise_half / 0.273)."""
+    from edgecal.detection.candidates import estimate_noise_sigma, smoothing_sigma
+    from edgecal.detection.detector import DEFAULT_PARAMS, SMOOTHING_NOISE_PER_HALF_NOISE, _search
+    from edgecal.synth.photometric import Photometric, apply_photometric
+
+    rng = np.random.default_rng(4)
+    radiance = np.clip(0.5 + 0.2 * cv2.GaussianBlur(rng.standard_normal((480, 640)).astype(np.float32), (0, 0), 6),
+                       0.05, 0.95)
+    grey = apply_photometric(radiance, Photometric(noise_sigma=6.0), rng)
+    debug, level = _search(grey, planar_target(9, 6), DEFAULT_PARAMS)
+    assert not debug.detections
+    assert level.noise_sigma == pytest.approx(6.0, rel=0.15)
+    half_noise = estimate_noise_sigma(cv2.pyrDown(grey))
+    assert level.smoothing_sigma == smoothing_sigma(half_noise * SMOOTHING_NOISE_PER_HALF_NOISE)
+
+
 def test_hole_prediction_matches_per_hole_homographies() -> None:
     """The batched local homographies of grid completion agree with cv2.findHomography hole by hole."""
     import cv2

@@ -23,6 +23,7 @@ from edgecal.detection.candidates import (
     chess_thresholds,
     dedupe_in_order,
     estimate_noise_sigma,
+    half_resolution_noise_sigma,
     min_eigen_candidates,
     noise_response_floor,
     snap_to_saddle,
@@ -63,6 +64,9 @@ SATURATED_LEVEL = 250
 # of the outermost corners. Smoothing and gradients then cost the window's area, not the image's.
 WINDOW_MARGIN_STEPS = 2.5
 WINDOW_MARGIN_PX = 48
+# The full-resolution smoothing's noise per half-resolution noise estimate (1 / pyrDown's gain on white
+# noise): the value the smoothing was tuned with (see _search).
+SMOOTHING_NOISE_PER_HALF_NOISE = 1.0 / 0.273
 _CHESS_RINGS = np.array([np.stack(chess_ring(r)) for r in CHESS_RADII_PX], dtype=np.int64)
 
 
@@ -196,13 +200,18 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     # Provisional: whatever the half-resolution search finds is refined, checked and rated at full
     # resolution below (or searched for there again), so its corners are not polished here.
     _boards_from_grids(half_level, half_grids, target, p, half, provisional=True)
-    # pyrDown's 5x5 binomial filter passes 0.27 of white noise: undo that instead of measuring again.
-    noise_full = noise_half / 0.273
+    # The full-resolution smoothing keeps the value it was tuned with (subpixel accuracy): noise_half / 0.273
+    # (pyrDown's gain on white noise), about half the image's noise (see half_resolution_noise_sigma);
+    # smoothing for the true noise moved corners of a hard render by up to 7 px.
+    smooth_noise = noise_half * SMOOTHING_NOISE_PER_HALF_NOISE
     if all_boards_found(half.detections, target):
-        refined = _refine_at_full_resolution(half, grey, noise_full, noise_half, p)
+        refined = _refine_at_full_resolution(half, grey, smooth_noise, noise_half, p)
         if refined is not None:
             return refined
-    level = Level(grey, noise_full, noise_half)
+    # The full search's thresholds (candidates, ChESS) are quantiles of the image's noise, so they need the
+    # noise itself: half of it let up to 6x the candidates through on noisy frames (bench/live.py's hard
+    # sequence: ~5800 per frame, now ~1100; all detections the same).
+    level = Level(grey, half_resolution_noise_sigma(grey), noise_half, smoothing_noise=smooth_noise)
     # pyrDown keeps the even pixels: x_full = 2 x_half.
     debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
     seeds = []
@@ -233,7 +242,8 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
 
     None when a board was too small at half resolution to trust (corners closer than MIN_HALF_SPACING_PX
     there), does not stay regular after refinement or extends beyond its size at full resolution: the
-    caller then works at full resolution.
+    caller then works at full resolution. ``noise_sigma``: what the window's smoothing is set for (it only
+    refines and completes boards: no thresholds on noise there).
     """
     boxes = []
     for det in half.detections:

@@ -19,17 +19,20 @@ class Level:
 
     A level can be a window of its image: ``grey`` is then the window, ``origin`` (x, y) its top-left pixel
     in the image and ``image`` the whole image (the covariances' noise is measured on all of it).
+    ``noise_sigma`` sets the thresholds that are noise quantiles (candidates, ChESS), ``smoothing_noise``
+    (default noise_sigma) the smoothing (candidates.smoothing_sigma).
     """
 
     def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None,
-                 origin: tuple[int, int] = (0, 0), image: np.ndarray | None = None) -> None:
+                 origin: tuple[int, int] = (0, 0), image: np.ndarray | None = None,
+                 smoothing_noise: float | None = None) -> None:
         self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
         # estimate_noise_sigma of cv2.pyrDown(image) when the pyramid measured it (the covariances reuse it)
         self.half_noise = half_noise
         self.grey = grey
         self.origin = np.array(origin, dtype=np.float64)
         self.image = grey if image is None else image
-        self.smoothing_sigma = smoothing_sigma(self.noise_sigma)
+        self.smoothing_sigma = smoothing_sigma(self.noise_sigma if smoothing_noise is None else smoothing_noise)
         self.smooth = smooth_image(grey, self.smoothing_sigma)
         self._gradients: tuple[np.ndarray, np.ndarray] | None = None
 
