@@ -58,8 +58,9 @@ def _corner_image(angle_deg: float, size: int = 41, blur: float = 1.0) -> np.nda
 def test_probe_profile_matches_reference(mode: int) -> None:
     view = planar_view(3, size=(320, 240), cols=5, rows=4, square_px=25.0)
     smooth, gx, gy = prepare_image(view.image)
-    pts = np.vstack([view.corners()[:3], [[5.0, 5.0], [318.5, 100.2]]])  # incl. rays leaving the image
-    radii = np.array([10.0, 7.5, 12.0, 10.0, 10.0])
+    # incl. rays leaving the image, and the last points inside and outside the kernel's unchecked path
+    pts = np.vstack([view.corners()[:3], [[5.0, 5.0], [318.5, 100.2], [11.0, 120.0], [307.0, 120.0]]])
+    radii = np.array([10.0, 7.5, 12.0, 10.0, 10.0, 10.0, 10.0])
     kernel = probe_profiles(gx, gy, pts, radii, 48, 1.5, mode)
     for i, (x, y) in enumerate(pts):
         ref = probe_profile_reference(gx, gy, x, y, radii[i], 48, 1.5, mode)
