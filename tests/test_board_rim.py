@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from edgecal.detection.detector import detect
-from edgecal.detection.subpixel import on_board_rim, window_spacing
+from edgecal.detection.levels import Level
+from edgecal.detection.subpixel import nearest_spacing, on_board_rim, refine_corners, refine_rim, window_spacing
 from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
 from edgecal.synth.camera import camera_from_fov
@@ -69,3 +70,22 @@ def test_the_rim_window_is_smaller_but_never_below_that_of_a_small_square():
     spacing = np.array([30.0, 30.0, 8.0, 10.0])
     w = window_spacing(spacing, np.array([True, False, True, True]))
     np.testing.assert_allclose(w, [21.0, 30.0, 8.0, 9.0])
+
+
+@pytest.mark.parametrize("cut, tilt_deg, seed", [(1.0, -25.0, 0), (1.0, 20.0, 2), (0.45, -25.0, 0), (0.45, 20.0, 2)])
+def test_only_rim_corners_whose_window_reaches_a_cut_edge_are_refined_again(cut, tilt_deg, seed):
+    target, view = _cut_board_view(cut, tilt_deg, seed)
+    ids, xy = view.ids(), view.corners()
+    smooth = Level(view.image).smooth
+    spacing = nearest_spacing(xy)
+    _xy, window = refine_rim(smooth, refine_corners(smooth, xy, spacing), ids, spacing)
+    rim = on_board_rim(ids)
+    again = window < spacing
+    assert not again[~rim].any()
+    if cut == 1.0:
+        # full outer squares, then the background: no window reaches an edge, nothing is refined again
+        assert not again.any()
+    else:
+        # every rim corner has a cut square beside it (the background is darker than white, lighter than
+        # black); the small window's result is kept where it continues the grid's lines better (20 of 26)
+        assert again[rim].mean() > 0.6, int(again[rim].sum())

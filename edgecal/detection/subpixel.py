@@ -56,60 +56,183 @@ def window_spacing(spacing: np.ndarray, rim: np.ndarray) -> np.ndarray:
     return np.where(rim, small, spacing)
 
 
+# The rim window is only needed where the full window reaches past the board's outer edge: a corner whose
+# outer squares keep their colour as far out as its window reaches (plus RIM_EDGE_MARGIN_PX of blur) keeps
+# the full window's result. Sampled on the smoothed image in the middle of each outer square (between the
+# rim corner and its neighbours along the rim), against the colours of the same squares near the corner;
+# the squares' contrast is taken from the inner squares beside them. A colour change of more than
+# RIM_EDGE_CONTRAST of that contrast is an edge (the square ends within the window).
+RIM_EDGE_MARGIN_PX = 2.0
+RIM_EDGE_CONTRAST = 0.25
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bilinear(img: np.ndarray, x: float, y: float) -> float:
+    """img at (x, y) (bilinear; NaN outside the image)."""
+    h, w = img.shape
+    if not (0.0 <= x <= w - 1.001 and 0.0 <= y <= h - 1.001):
+        return np.nan
+    x0 = int(x)
+    y0 = int(y)
+    fx = x - x0
+    fy = y - y0
+    return ((img[y0, x0] * (1.0 - fx) + img[y0, x0 + 1] * fx) * (1.0 - fy)
+            + (img[y0 + 1, x0] * (1.0 - fx) + img[y0 + 1, x0 + 1] * fx) * fy)
+
+
+@njit(cache=True, nogil=True)
+def _grid_point(grid: np.ndarray, r: int, c: int) -> tuple[float, float]:
+    """The grid's corner at (row r, col c); NaN outside or missing."""
+    if r < 0 or c < 0 or r >= grid.shape[0] or c >= grid.shape[1]:
+        return np.nan, np.nan
+    return grid[r, c, 0], grid[r, c, 1]
+
+
+@njit(cache=True, nogil=True)
+def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Per rim corner ``at`` (N, 2: col, row of ``grid`` (rows, cols, 2), NaN where missing) whether its
+    cornerSubPix window of half-width ``half`` (N,) px sees an outer square end (see RIM_EDGE_MARGIN_PX);
+    True where that cannot be told (neighbours missing, samples outside the image, no contrast)."""
+    rows, cols = grid.shape[0], grid.shape[1]
+    n = at.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        c = at[i, 0]
+        r = at[i, 1]
+        px, py = grid[r, c, 0], grid[r, c, 1]
+        reaches = False
+        for side in range(4):
+            # outward step (dc, dr) of this side, and the direction along it
+            if side == 0:
+                on, dc, dr = c == 0, -1, 0
+            elif side == 1:
+                on, dc, dr = c == cols - 1, 1, 0
+            elif side == 2:
+                on, dc, dr = r == 0, 0, -1
+            else:
+                on, dc, dr = r == rows - 1, 0, 1
+            if not on:
+                continue
+            bx, by = _grid_point(grid, r - dr, c - dc)  # one step inwards
+            if not (math.isfinite(px) and math.isfinite(bx)):
+                reaches = True
+                break
+            ux, uy = px - bx, py - by  # outward, one square
+            un = math.hypot(ux, uy)
+            # how far out (in squares) the window reaches: its support in that direction, plus the blur margin
+            t_max = ((half[i] + RIM_EDGE_MARGIN_PX) * (abs(ux) + abs(uy)) / un) / un
+            for along in (-1, 1):
+                # to the middle of the outer square, along the rim: half the step to the neighbour on the rim,
+                # or (at the board's corners, whose window also sees the square diagonally beyond) the
+                # opposite neighbour's step reversed
+                qx, qy = _grid_point(grid, r + along * abs(dc), c + along * abs(dr))
+                vx, vy = 0.5 * (qx - px), 0.5 * (qy - py)
+                if not math.isfinite(qx):
+                    qx, qy = _grid_point(grid, r - along * abs(dc), c - along * abs(dr))
+                    vx, vy = -0.5 * (qx - px), -0.5 * (qy - py)
+                if not math.isfinite(qx):
+                    continue
+                inner = _bilinear(smooth, px - 0.5 * ux + vx, py - 0.5 * uy + vy)
+                other = _bilinear(smooth, px - 0.5 * ux - vx, py - 0.5 * uy - vy)
+                contrast = abs(inner - other)
+                near = _bilinear(smooth, px + 0.25 * ux + vx, py + 0.25 * uy + vy)
+                far = _bilinear(smooth, px + t_max * ux + vx, py + t_max * uy + vy)
+                mid = _bilinear(smooth, px + 0.5 * (0.25 + t_max) * ux + vx, py + 0.5 * (0.25 + t_max) * uy + vy)
+                # the outer square has the colour opposite to the inner square beside it, and keeps it
+                if not (abs(near - other) < 0.5 * contrast and contrast > 0.0
+                        and abs(far - near) < RIM_EDGE_CONTRAST * contrast
+                        and abs(mid - near) < RIM_EDGE_CONTRAST * contrast):
+                    reaches = True  # NaN comparisons land here too
+                    break
+            if reaches:
+                break
+        out[i] = reaches
+    return out
+
+
 def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-    """A grid's refined corners ``xy`` (M, 2) with those on its rim refined again from there with the smaller
-    window (window_spacing), kept where that continues the grid's lines better (_rim_misfit); and the square
-    size of the window each corner now has (for the saddle fit).
+    """A grid's refined corners ``xy`` (M, 2) with those on its rim whose full window reaches past the board's
+    outer edge (_window_reaches_edge) refined again from there with the smaller window (window_spacing),
+    kept where that continues the grid's lines better (_rim_misfit); and the square size of the window each
+    corner now has (for the saddle fit).
 
     Both steps are needed: the full window brings a corner that grouping or a prediction put a few pixels
     off back to it (a small one has less reach), the small one then leaves out the board's edge. The check
     against the grid's lines keeps the full window's result on an image whose corners are not clean
-    X-junctions (bloom, erosion), where the small window can go astray instead.
+    X-junctions (bloom, erosion), where the small window can go astray instead. Most boards have full outer
+    squares (or a margin): their rim corners are left as they are, at the cost of a few samples each.
     """
     xy = np.array(xy, dtype=np.float64)
     window = np.array(spacing, dtype=np.float64)
+    ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
     rim = on_board_rim(ids)
     if not rim.any():
         return xy, window
-    small = window_spacing(window, rim)
-    again = refine_corners(smooth, xy[rim], small[rim])
-    better = _rim_misfit(again, ids[rim], xy, ids) < _rim_misfit(xy[rim], ids[rim], xy, ids)
-    which = np.flatnonzero(rim)[better]
-    xy[which] = again[better]
-    window[which] = small[which]
+    grid, lo = _dense_grid(xy, ids)
+    which = np.flatnonzero(rim)
+    at = np.ascontiguousarray(ids[which] - lo)
+    need = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at,
+                                subpixel_window(window[which]).astype(np.float64))
+    which, at = which[need], at[need]
+    if not len(which):
+        return xy, window
+    small = window_spacing(window[which], np.ones(len(which), dtype=bool))
+    again = refine_corners(smooth, xy[which], small)
+    better = _rim_misfit(grid, at, again) < _rim_misfit(grid, at, xy[which])
+    xy[which[better]] = again[better]
+    window[which[better]] = small[better]
     return xy, window
 
 
-def _rim_misfit(candidates: np.ndarray, which: np.ndarray, xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """How far each candidate position (``candidates`` (N, 2)) of the corners ``which`` (N, 2 ids) on a grid's
-    outer lines is from continuing the grid lines that cross there: the line through the next three corners
-    inwards of the grid ``xy``/``ids``, extrapolated by 3 a - 3 b + c (exact for a quadratic: a lens bends
-    lines smoothly), measured along that line only (cut outer squares push a corner outwards, along it; the
-    neighbours on the same outer line are pushed alike and say nothing). 0 where those corners are missing.
-    """
+def _dense_grid(xy: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The grid's corners (rows, cols, 2) by (row, col) from its smallest ids ``lo`` (2,) on, NaN where
+    missing; and ``lo``."""
     lo, hi = ids.min(axis=0), ids.max(axis=0)
     cols, rows = (hi - lo + 1).tolist()
-    grid = np.full((rows, cols, 2), np.nan)        # the grid's corners by (row, col); NaN where missing
+    grid = np.full((rows, cols, 2), np.nan)
     grid[ids[:, 1] - lo[1], ids[:, 0] - lo[0]] = xy
-    at = np.asarray(which, dtype=np.int64) - lo
-    total = np.zeros(len(at))
-    for axis, inward, line in ((0, 1, 0), (0, -1, cols - 1), (1, 1, 0), (1, -1, rows - 1)):
-        on = at[:, axis] == line
-        if not on.any():
-            continue
-        nb = []
-        for k in (1, 2, 3):
-            q = at.copy()
-            q[:, axis] += k * inward
-            outside = (q[:, axis] < 0) | (q[:, axis] >= (cols, rows)[axis])
-            q[:, axis] = np.clip(q[:, axis], 0, (cols, rows)[axis] - 1)
-            nb.append(np.where(outside[:, None], np.nan, grid[q[:, 1], q[:, 0]]))
-        a, b, c = nb
-        along = (a - b) / np.maximum(np.linalg.norm(a - b, axis=1, keepdims=True), 1e-9)
-        off = np.sum((candidates - (3.0 * a - 3.0 * b + c)) * along, axis=1)
-        total += np.where(on & np.isfinite(off), off, 0.0) ** 2
-    return np.sqrt(total)
+    return grid, lo
+
+
+@njit(cache=True, nogil=True)
+def _rim_misfit(grid: np.ndarray, at: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+    """How far each candidate position (``candidates`` (N, 2)) of the corners ``at`` (N, 2: col, row) on the
+    outer lines of ``grid`` (rows, cols, 2; NaN where missing) is from continuing the grid lines that cross
+    there: the line through the next three corners inwards, extrapolated by 3 a - 3 b + c (exact for a
+    quadratic: a lens bends lines smoothly), measured along that line only (cut outer squares push a corner
+    outwards, along it; the neighbours on the same outer line are pushed alike and say nothing). A side
+    whose three corners are not all there adds nothing.
+    """
+    rows, cols = grid.shape[0], grid.shape[1]
+    n = at.shape[0]
+    out = np.zeros(n)
+    for i in range(n):
+        c = at[i, 0]
+        r = at[i, 1]
+        total = 0.0
+        for side in range(4):
+            if side == 0:
+                on, dc, dr = c == 0, 1, 0
+            elif side == 1:
+                on, dc, dr = c == cols - 1, -1, 0
+            elif side == 2:
+                on, dc, dr = r == 0, 0, 1
+            else:
+                on, dc, dr = r == rows - 1, 0, -1
+            if not on:
+                continue
+            ax, ay = _grid_point(grid, r + dr, c + dc)
+            bx, by = _grid_point(grid, r + 2 * dr, c + 2 * dc)
+            qx, qy = _grid_point(grid, r + 3 * dr, c + 3 * dc)
+            lx, ly = ax - bx, ay - by
+            norm = max(math.hypot(lx, ly), 1e-9)
+            off = ((candidates[i, 0] - (3.0 * ax - 3.0 * bx + qx)) * lx
+                   + (candidates[i, 1] - (3.0 * ay - 3.0 * by + qy)) * ly) / norm
+            if math.isfinite(off):
+                total += off * off
+        out[i] = math.sqrt(total)
+    return out
 
 
 def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
