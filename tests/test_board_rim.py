@@ -89,3 +89,17 @@ def test_only_rim_corners_whose_window_reaches_a_cut_edge_are_refined_again(cut,
         # every rim corner has a cut square beside it (the background is darker than white, lighter than
         # black); the small window's result is kept where it continues the grid's lines better (20 of 26)
         assert again[rim].mean() > 0.6, int(again[rim].sum())
+
+
+@pytest.mark.parametrize("cut, tilt_deg, seed", [(0.35, -25.0, 0), (0.4, 20.0, 2), (0.4, 35.0, 3)])
+def test_rim_corners_pulled_beyond_the_small_windows_reach_come_back_from_the_grid_lines(cut, tilt_deg, seed):
+    # outer squares cut to a third of a square: the full window pulls the rim corners 1-3.5 px outwards, and
+    # the rim window refined from there stayed pulled (before: 1.2-3.5 px off); from where the grid's lines
+    # put them, with a window that fits the cut squares, they come back
+    target, view = _cut_board_view(cut, tilt_deg, seed)
+    (det,) = detect(view.image, target)
+    err = _errors(view, det.corners, det.ids)
+    rim = on_board_rim(det.ids)
+    assert det.complete and rim.sum() == 26
+    assert err[~rim].max() < 0.08
+    assert err[rim].max() < 0.15, np.round(err[rim], 2)

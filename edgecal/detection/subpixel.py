@@ -64,6 +64,11 @@ def window_spacing(spacing: np.ndarray, rim: np.ndarray) -> np.ndarray:
 # RIM_EDGE_CONTRAST of that contrast is an edge (the square ends within the window).
 RIM_EDGE_MARGIN_PX = 2.0
 RIM_EDGE_CONTRAST = 0.25
+# A rim corner is also refined from where the grid lines through the next corners inwards put it, when those
+# lines predict their own next corner (the worst of three parallel lines) this many times better than they
+# disagree with the corner: a single miss is a poor measure of the lines' error (the ratio of two has heavy
+# tails), and on a bent or noisy grid the extrapolation is no better than the corner.
+RIM_LINE_TRUST = 4.0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -89,13 +94,18 @@ def _grid_point(grid: np.ndarray, r: int, c: int) -> tuple[float, float]:
 
 
 @njit(cache=True, nogil=True)
-def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, half: np.ndarray) -> np.ndarray:
+def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, half: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Per rim corner ``at`` (N, 2: col, row of ``grid`` (rows, cols, 2), NaN where missing) whether its
-    cornerSubPix window of half-width ``half`` (N,) px sees an outer square end (see RIM_EDGE_MARGIN_PX);
-    True where that cannot be told (neighbours missing, samples outside the image, no contrast)."""
+    cornerSubPix window of half-width ``half`` (N,) px sees an outer square end (see RIM_EDGE_MARGIN_PX),
+    True where that cannot be told (neighbours missing, samples outside the image, no contrast); and the
+    largest half-width (px) of a window that stays RIM_EDGE_MARGIN_PX inside the outer squares as far as
+    they were seen to reach (sampled every pixel outwards; 0 where an outer square is not seen at all, inf
+    where no edge was seen)."""
     rows, cols = grid.shape[0], grid.shape[1]
     n = at.shape[0]
     out = np.zeros(n, dtype=np.bool_)
+    room = np.full(n, np.inf)
     for i in range(n):
         c = at[i, 0]
         r = at[i, 1]
@@ -116,11 +126,13 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
             bx, by = _grid_point(grid, r - dr, c - dc)  # one step inwards
             if not (math.isfinite(px) and math.isfinite(bx)):
                 reaches = True
+                room[i] = 0.0
                 break
             ux, uy = px - bx, py - by  # outward, one square
             un = math.hypot(ux, uy)
+            reach = (abs(ux) + abs(uy)) / un  # a window's reach in that direction per px of half-width
             # how far out (in squares) the window reaches: its support in that direction, plus the blur margin
-            t_max = ((half[i] + RIM_EDGE_MARGIN_PX) * (abs(ux) + abs(uy)) / un) / un
+            t_max = (half[i] * reach + RIM_EDGE_MARGIN_PX) / un
             for along in (-1, 1):
                 # to the middle of the outer square, along the rim: half the step to the neighbour on the rim,
                 # or (at the board's corners, whose window also sees the square diagonally beyond) the
@@ -136,32 +148,42 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
                 other = _bilinear(smooth, px - 0.5 * ux - vx, py - 0.5 * uy - vy)
                 contrast = abs(inner - other)
                 near = _bilinear(smooth, px + 0.25 * ux + vx, py + 0.25 * uy + vy)
-                far = _bilinear(smooth, px + t_max * ux + vx, py + t_max * uy + vy)
-                mid = _bilinear(smooth, px + 0.5 * (0.25 + t_max) * ux + vx, py + 0.5 * (0.25 + t_max) * uy + vy)
-                # the outer square has the colour opposite to the inner square beside it, and keeps it
-                if not (abs(near - other) < 0.5 * contrast and contrast > 0.0
-                        and abs(far - near) < RIM_EDGE_CONTRAST * contrast
-                        and abs(mid - near) < RIM_EDGE_CONTRAST * contrast):
+                # the outer square has the colour opposite to the inner square beside it ...
+                if not (abs(near - other) < 0.5 * contrast and contrast > 0.0):
                     reaches = True  # NaN comparisons land here too
-                    break
-            if reaches:
-                break
+                    room[i] = 0.0
+                    continue
+                # ... and keeps it as far as the window reaches
+                steps = int(math.ceil((t_max - 0.25) * un))
+                for k in range(1, steps + 1):
+                    t = min(0.25 + k / un, t_max)
+                    value = _bilinear(smooth, px + t * ux + vx, py + t * uy + vy)
+                    if not abs(value - near) < RIM_EDGE_CONTRAST * contrast:
+                        reaches = True
+                        # the edge lies about half way to the first changed sample from the last unchanged one
+                        edge = (t - 0.5 / un) * un
+                        room[i] = min(room[i], max(0.0, (edge - RIM_EDGE_MARGIN_PX) / reach))
+                        break
         out[i] = reaches
-    return out
+    return out, room
 
 
 def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
     """A grid's refined corners ``xy`` (M, 2) with those on its rim whose full window reaches past the board's
-    outer edge (_window_reaches_edge) refined again from there with the smaller window (window_spacing),
-    kept where that continues the grid's lines better (_rim_misfit); and the square size of the window each
-    corner now has (for the saddle fit).
+    outer edge (_window_reaches_edge) refined again with a smaller window (window_spacing, smaller still
+    where the outer squares were seen to end sooner), from where they are and from where the grid's lines
+    put them (_rim_prediction), kept where that continues the grid's lines better (_rim_misfit); and the
+    square size of the window each corner now has (for the saddle fit).
 
-    Both steps are needed: the full window brings a corner that grouping or a prediction put a few pixels
+    Both windows are needed: the full one brings a corner that grouping or a prediction put a few pixels
     off back to it (a small one has less reach), the small one then leaves out the board's edge. The check
     against the grid's lines keeps the full window's result on an image whose corners are not clean
-    X-junctions (bloom, erosion), where the small window can go astray instead. Most boards have full outer
-    squares (or a margin): their rim corners are left as they are, at the cost of a few samples each.
+    X-junctions (bloom, erosion), where the small window can go astray instead. The start from the lines
+    is for a corner the full window pulled further out than the small one reaches (Bouguet's stereo
+    sample: 4-10 px; a synthetic board with outer squares cut to 0.35-0.45 of a square: 1-3.5 px, now
+    0.02-0.07). Most boards have full outer squares (or a margin): their rim corners are left as they
+    are, at the cost of a few samples each.
     """
     xy = np.array(xy, dtype=np.float64)
     window = np.array(spacing, dtype=np.float64)
@@ -172,18 +194,107 @@ def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.
     grid, lo = _dense_grid(xy, ids)
     which = np.flatnonzero(rim)
     at = np.ascontiguousarray(ids[which] - lo)
-    need = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at,
-                                subpixel_window(window[which]).astype(np.float64))
-    which, at = which[need], at[need]
+    need, room = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at,
+                                      subpixel_window(window[which]).astype(np.float64))
+    which, at, room = which[need], at[need], room[need]
     if not len(which):
         return xy, window
+    # the rim window, and smaller where the outer squares were seen to end within it (never below the
+    # window of a RIM_WINDOW_MIN_SPACING_PX square)
     small = window_spacing(window[which], np.ones(len(which), dtype=bool))
-    again = refine_corners(smooth, xy[which], small)
-    better = _rim_misfit(grid, at, again) < _rim_misfit(grid, at, xy[which])
-    xy[which[better]] = again[better]
-    window[which[better]] = small[better]
+    small = np.minimum(small, np.maximum(2.0 * np.floor(room) + 1.0, np.minimum(small, RIM_WINDOW_MIN_SPACING_PX)))
+    # The small window from the full window's result, and from where the grid's lines put the corner: a
+    # corner the board's edge pulled further than the small window reaches stays pulled from the first.
+    # The lines are trusted where they predict their own next corner RIM_LINE_TRUST times better than
+    # they disagree with this one (on a bent or noisy grid the extrapolation is no better than the corner).
+    # A board's corners are predicted by lines along its sides, whose corners were pulled too: those not
+    # trusted are tried once more on the grid the first round put right.
+    tried = np.zeros(len(which), dtype=bool)
+    small_used = np.zeros(len(which), dtype=bool)
+    for first in (True, False):
+        pred, check = _rim_prediction(grid, at)
+        best = xy[which].copy()
+        best_misfit = _rim_misfit(grid, at, best)
+        trusted = ~tried & np.isfinite(check) & (RIM_LINE_TRUST * check < best_misfit)
+        tried |= trusted
+        for start, use in ((best.copy(), np.full(len(which), first)), (pred, trusted)):
+            if not use.any():
+                continue
+            again = refine_corners(smooth, np.where(use[:, None], start, np.nan), small)
+            # a refinement that ran off keeps its start
+            moved = use & np.isfinite(again).all(axis=1) & (again != start).any(axis=1)
+            misfit = np.where(moved, _rim_misfit(grid, at, again), np.inf)
+            better = misfit < best_misfit
+            best[better], best_misfit[better], small_used[better] = again[better], misfit[better], True
+        changed = (best != xy[which]).any(axis=1)
+        xy[which] = best
+        if not changed.any() or tried.all():
+            break
+        grid, _lo = _dense_grid(xy, ids)
+    window[which[small_used]] = small[small_used]
     return xy, window
 
+
+@njit(cache=True, nogil=True)
+def _rim_prediction(grid: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the grid lines through the next three corners inwards put each rim corner ``at`` (N, 2: col, row
+    of ``grid`` (rows, cols, 2)): 3 a - 3 b + c per line (see _rim_misfit), averaged over the lines (two at a
+    board's corner); and how well the same lines, and the parallel ones through the rim neighbours, predict
+    their own first corner a from the three after it (the largest miss along the lines, px). NaN where no
+    line has the four corners."""
+    rows, cols = grid.shape[0], grid.shape[1]
+    n = at.shape[0]
+    out = np.full((n, 2), np.nan)
+    check = np.full(n, np.nan)
+    for i in range(n):
+        c = at[i, 0]
+        r = at[i, 1]
+        sx = 0.0
+        sy = 0.0
+        worst = 0.0
+        k = 0
+        for side in range(4):
+            if side == 0:
+                on, dc, dr = c == 0, 1, 0
+            elif side == 1:
+                on, dc, dr = c == cols - 1, -1, 0
+            elif side == 2:
+                on, dc, dr = r == 0, 0, 1
+            else:
+                on, dc, dr = r == rows - 1, 0, -1
+            if not on:
+                continue
+            ax, ay = _grid_point(grid, r + dr, c + dc)
+            bx, by = _grid_point(grid, r + 2 * dr, c + 2 * dc)
+            qx, qy = _grid_point(grid, r + 3 * dr, c + 3 * dc)
+            px = 3.0 * ax - 3.0 * bx + qx
+            py = 3.0 * ay - 3.0 * by + qy
+            # the check on this line and the parallel ones through the rim neighbours (one miss alone is a
+            # poor measure of the lines' error: the ratio of two such misses has heavy tails)
+            miss = np.nan
+            for along in (-1, 0, 1):
+                r1 = r + along * abs(dc)
+                c1 = c + along * abs(dr)
+                a1x, a1y = _grid_point(grid, r1 + dr, c1 + dc)
+                b1x, b1y = _grid_point(grid, r1 + 2 * dr, c1 + 2 * dc)
+                q1x, q1y = _grid_point(grid, r1 + 3 * dr, c1 + 3 * dc)
+                e1x, e1y = _grid_point(grid, r1 + 4 * dr, c1 + 4 * dc)
+                lx, ly = a1x - b1x, a1y - b1y
+                norm = max(math.hypot(lx, ly), 1e-9)
+                m = abs((a1x - (3.0 * b1x - 3.0 * q1x + e1x)) * lx
+                        + (a1y - (3.0 * b1y - 3.0 * q1y + e1y)) * ly) / norm
+                if math.isfinite(m) and not m <= miss:
+                    miss = m
+            if math.isfinite(px) and math.isfinite(py) and math.isfinite(miss):
+                sx += px
+                sy += py
+                worst = max(worst, miss)
+                k += 1
+        if k:
+            out[i, 0] = sx / k
+            out[i, 1] = sy / k
+            check[i] = worst
+    return out, check
 
 def _dense_grid(xy: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The grid's corners (rows, cols, 2) by (row, col) from its smallest ids ``lo`` (2,) on, NaN where
