@@ -99,7 +99,8 @@ def _first_pass(level: Level, cands: np.ndarray, p: DetectorParams) -> np.ndarra
     pts = pts[chess_filter(smooth, pts, _CHESS_RINGS, thresholds)]
     keep = np.zeros(len(pts), dtype=bool)
     for radius in radii:
-        keep |= ring_prefilter(smooth, pts, np.full(len(pts), radius), p.min_contrast)
+        todo = np.nonzero(~keep)[0]  # a point one radius keeps needs no other
+        keep[todo] = ring_prefilter(smooth, pts[todo], np.full(len(todo), radius), p.min_contrast)
     pts = pts[keep]
     if len(pts) == 0:
         return pts
