@@ -35,7 +35,7 @@ from edgecal.detection.levels import Level, window_level
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
-from edgecal.detection.subpixel import nearest_spacing, refine_corners
+from edgecal.detection.subpixel import SEARCH_CRITERIA, nearest_spacing, refine_corners
 from edgecal.detection.target_boards import (
     all_boards_found,
     boards_by_size,
@@ -257,8 +257,10 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
                           (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
     for det in half.detections:
         spacing = 2.0 * nearest_spacing(det.corners)
-        # Half-resolution corners are ~0.5 px off at full resolution: allow the move, then polish.
-        xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0)
+        # Half-resolution corners are ~0.5 px off at full resolution: allow the move, to 0.01 px (final_corners
+        # polishes to 0.001 px right after: with its criteria here too, the same corners to 6e-4 px, slower).
+        xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0,
+                            criteria=SEARCH_CRITERIA)
         xy = resettle_slid_corners(level.smooth, det.ids, final_corners(level.smooth, xy, det.ids, p), p)
         if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
