@@ -168,7 +168,7 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
     return out, room
 
 
-def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray
+def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray, every: bool = False
                ) -> tuple[np.ndarray, np.ndarray]:
     """A grid's refined corners ``xy`` (M, 2) with those on its rim whose full window reaches past the board's
     outer edge (_window_reaches_edge) refined again with a smaller window (window_spacing, smaller still
@@ -183,7 +183,10 @@ def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.
     is for a corner the full window pulled further out than the small one reaches (Bouguet's stereo
     sample: 4-10 px; a synthetic board with outer squares cut to 0.35-0.45 of a square: 1-3.5 px, now
     0.02-0.07). Most boards have full outer squares (or a margin): their rim corners are left as they
-    are, at the cost of a few samples each.
+    are, at the cost of a few samples each. ``every``: every rim corner gets the rim window's pass, the
+    start from the grid's lines still only those whose window reaches the board's edge (tracking: its
+    corners come from the search's criteria and this pass is their polish; without it a tracked rim corner
+    of bench/corner_noise.py's clean renders stayed 0.9 px off).
     """
     xy = np.array(xy, dtype=np.float64)
     window = np.array(spacing, dtype=np.float64)
@@ -196,7 +199,10 @@ def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.
     at = np.ascontiguousarray(ids[which] - lo)
     need, room = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at,
                                       subpixel_window(window[which]).astype(np.float64))
-    which, at, room = which[need], at[need], room[need]
+    edge = need  # the board's edge seen within the window: these may be pulled beyond the rim window's reach
+    if every:
+        need = np.ones(len(which), dtype=bool)
+    which, at, room, edge = which[need], at[need], room[need], edge[need]
     if not len(which):
         return xy, window
     # the rim window, and smaller where the outer squares were seen to end within it (never below the
@@ -215,7 +221,7 @@ def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.
         pred, check = _rim_prediction(grid, at)
         best = xy[which].copy()
         best_misfit = _rim_misfit(grid, at, best)
-        trusted = ~tried & np.isfinite(check) & (RIM_LINE_TRUST * check < best_misfit)
+        trusted = edge & ~tried & np.isfinite(check) & (RIM_LINE_TRUST * check < best_misfit)
         tried |= trusted
         for start, use in ((best.copy(), np.full(len(which), first)), (pred, trusted)):
             if not use.any():

@@ -244,7 +244,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         if slipped_sides(corner, sides):
             continue
         # the rim corners once more with a window that leaves out the board's edge (cut outer squares)
-        xy, _window = refine_rim(smooth, xy, ids, sp)
+        xy, _window = refine_rim(smooth, xy, ids, sp, every=True)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
