@@ -481,6 +481,26 @@ def test_full_search_thresholds_use_the_image_noise() -> None:
     assert level.smoothing_sigma == smoothing_sigma(half_noise * SMOOTHING_NOISE_PER_HALF_NOISE)
 
 
+def test_ids_do_not_depend_on_the_grid_labels() -> None:
+    """assign_ids gives a board's ids (handedness and colour decide) whichever of the lattice's eight
+    symmetries its grid labels came in; grid_is_regular passes the board and fails it with two corners
+    swapped (a zig-zag)."""
+    from edgecal.detection.candidates import smooth_image
+    from edgecal.detection.ordering import _SYMMETRIES, assign_ids, grid_is_regular
+
+    view = planar_view(11, size=(640, 480))
+    board = planar_target(9, 6).boards[0]
+    det = edgecal.detect(view.image, planar_target(9, 6))[0]
+    smooth = smooth_image(view.image)
+    for m in _SYMMETRIES:
+        uv = det.ids @ m.T + 7  # any labels: rotated or mirrored, offset
+        np.testing.assert_array_equal(assign_ids(uv, det.corners, smooth, board), det.ids)
+    assert grid_is_regular(det.corners, det.ids, 9, 6, 0.1)
+    swapped = det.corners.copy()
+    swapped[[10, 11]] = swapped[[11, 10]]
+    assert not grid_is_regular(swapped, det.ids, 9, 6, 0.1)
+
+
 def test_hole_prediction_matches_per_hole_homographies() -> None:
     """The batched local homographies of grid completion agree with cv2.findHomography hole by hole."""
     import cv2
