@@ -120,3 +120,18 @@ def test_every_rim_corner_of_a_tracked_board_gets_the_rim_windows_pass():
             errors.append(_errors(view, det.corners[rim], det.ids[rim]))
     errors = np.concatenate(errors)
     assert errors.max() < 0.3 and np.sqrt(np.mean(errors ** 2)) < 0.03, (errors.max(), np.sqrt(np.mean(errors ** 2)))
+
+
+def test_rim_pass_survives_two_corners_on_one_spot():
+    """A grid whose rim corner and its inward neighbour lie on one spot (a misread grid; seen on bench/live.py's
+    normal and hard sequences) has no outward direction there: refine_rim treats it as a missing neighbour
+    instead of dividing by zero (the detector raised ZeroDivisionError on those frames)."""
+    from edgecal.detection.candidates import smooth_image
+
+    view = planar_view([2, 91], photometric="normal")
+    xy, ids = view.corners(0).copy(), view.ids(0)
+    i = int(np.nonzero((ids[:, 0] == 3) & (ids[:, 1] == 0))[0][0])
+    j = int(np.nonzero((ids[:, 0] == 3) & (ids[:, 1] == 1))[0][0])
+    xy[j] = xy[i]
+    out, _window = refine_rim(smooth_image(view.image, 1.0), xy, ids, np.full(len(xy), 20.0))
+    assert out.shape == xy.shape and np.isfinite(out).all()

@@ -130,6 +130,10 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
                 break
             ux, uy = px - bx, py - by  # outward, one square
             un = math.hypot(ux, uy)
+            if un == 0.0:  # two corners on one spot: no outward direction, as with a missing neighbour
+                reaches = True
+                room[i] = 0.0
+                break
             reach = (abs(ux) + abs(uy)) / un  # a window's reach in that direction per px of half-width
             # how far out (in squares) the window reaches: its support in that direction, plus the blur margin
             t_max = (half[i] * reach + RIM_EDGE_MARGIN_PX) / un
