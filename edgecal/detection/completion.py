@@ -247,17 +247,29 @@ def _extrapolate(grid: dict[tuple[int, int], np.ndarray], labels: list[tuple[int
     """
     du, dv = outward
     pts, spacing, keys = [], [], []
+    hypot = np.hypot
+    # Per-point arithmetic on Python floats: the same float64 operations in the same order as on the (2,)
+    # arrays (bit-identical), without numpy's per-call overhead (~8 small array operations per point).
     for u, v in labels:
         p0 = grid.get((u - du, v - dv))
         p1 = grid.get((u - 2 * du, v - 2 * dv))
-        p2 = grid.get((u - 3 * du, v - 3 * dv))
         if p0 is None or p1 is None:
             continue
-        new = 2.0 * p0 - p1 if p2 is None else 3.0 * p0 - 3.0 * p1 + p2
-        along = [grid.get((u - du + dv, v - dv + du)), grid.get((u - du - dv, v - dv - du))]
-        dists = [float(np.hypot(*(new - p0)))] + [float(np.hypot(*(q - p0))) for q in along if q is not None]
-        pts.append(new)
-        spacing.append(min(dists))
+        p2 = grid.get((u - 3 * du, v - 3 * dv))
+        x0, y0 = p0.tolist()
+        x1, y1 = p1.tolist()
+        if p2 is None:
+            nx, ny = 2.0 * x0 - x1, 2.0 * y0 - y1
+        else:
+            x2, y2 = p2.tolist()
+            nx, ny = 3.0 * x0 - 3.0 * x1 + x2, 3.0 * y0 - 3.0 * y1 + y2
+        d = float(hypot(nx - x0, ny - y0))
+        for q in (grid.get((u - du + dv, v - dv + du)), grid.get((u - du - dv, v - dv - du))):
+            if q is not None:
+                qx, qy = q.tolist()
+                d = min(d, float(hypot(qx - x0, qy - y0)))
+        pts.append(np.array((nx, ny)))
+        spacing.append(d)
         keys.append((u, v))
     return pts, spacing, keys
 
