@@ -12,8 +12,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from edgecal.detection.tracking import MAX_MOTION_RESIDUAL_PX, track_boards
+from edgecal.detection.detector import detect
+from edgecal.detection.tracking import MAX_MOTION_RESIDUAL_PX, near_window, search_near, track_boards
 from edgecal.detection.types import CornerPrediction
+from edgecal.drivers.base import Frame, StereoFrame
 from edgecal.pose import Pose, estimate_pose
 from edgecal.pose.predict import (
     MAX_EXTRAPOLATION,
@@ -24,6 +26,7 @@ from edgecal.pose.predict import (
     predict_corners,
 )
 from edgecal.stream import LiveLoop, load_live_config
+from edgecal.stream.frame_pipeline import FramePipeline
 from edgecal.stream.tracker import BoardTracker, TrackingSettings, confirmed_fraction
 
 from .live_fixtures import free_endpoint, render_robot, write_config
@@ -207,3 +210,75 @@ def test_tracking_recovers_corners_a_scaled_prediction_misses_at_first(robot) ->
         errors = [np.linalg.norm(xy - seen[(d.board, int(c), int(r))]) for (c, r), xy in zip(d.ids, d.corners)]
         # Within the motion check's bound (MAX_MOTION_RESIDUAL_PX); the pose's outlier test sees the rest.
         assert np.median(errors) < 0.05 and max(errors) < MAX_MOTION_RESIDUAL_PX
+
+
+def test_search_near_finds_the_boards_around_their_prediction(robot) -> None:
+    folder, truth, cfg = robot
+    frame = truth["frames"][1]
+    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
+    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    # a lost track's prediction is some pixels off: the window still holds the boards
+    moved = [CornerPrediction(p.board, p.ids, p.xy + np.array([6.0, -4.0])) for p in preds]
+    x0, y0, x1, y1 = near_window(moved, image.shape)
+    assert (x1 - x0) * (y1 - y0) < 0.4 * image.size
+    near = search_near(image, moved, cfg.target)
+    full = detect(image, cfg.target)
+    assert sorted(d.board for d in near) == sorted(d.board for d in full)
+    seen = truth_corners(frame, "left")
+    errors = [np.linalg.norm(xy - seen[(d.board, int(c), int(r))]) for d in near
+              for (c, r), xy in zip(d.ids, d.corners)]
+    assert np.median(errors) < 0.05
+    # the same corners as the whole image's search (its smoothing follows the noise of the window)
+    by_board = {d.board: d for d in full}
+    for d in near:
+        assert np.array_equal(d.ids, by_board[d.board].ids)
+        assert np.abs(d.corners - by_board[d.board].corners).max() < 0.1
+    # a window that would cover most of the image is no use: the caller searches the image
+    spread = [CornerPrediction(preds[0].board, preds[0].ids[:2], np.array([[20.0, 20.0], [1260.0, 780.0]]))]
+    assert near_window(spread, image.shape) is None and search_near(image, spread, cfg.target) is None
+
+
+def _stereo_frame(left: np.ndarray, right: np.ndarray, stamp_ns: int, seq: int) -> StereoFrame:
+    return StereoFrame(Frame(left, stamp_ns, stamp_ns, seq, "left"), Frame(right, stamp_ns, stamp_ns, seq, "right"))
+
+
+def test_a_board_hidden_from_verification_is_searched_for_around_its_prediction_not_in_the_whole_image(robot):
+    """Frame 2 with two of the three boards painted over in both images: verification confirms a quarter of
+    the corners the last frame found. The hidden boards are searched for where they must be (and not found);
+    the frame stays tracked on the third board, with its pose as accurate, instead of a full search of both
+    images (which found no more)."""
+    folder, truth, cfg = robot
+    pipeline = FramePipeline(cfg.target, cfg.cameras, cfg.detector, cfg.pose, TrackingSettings())
+    try:
+        images = [[cv2.imread(str(folder / f[s]), cv2.IMREAD_GRAYSCALE) for s in ("left", "right")]
+                  for f in truth["frames"]]
+        results = [pipeline.process(_stereo_frame(*images[k], truth["frames"][k]["stamp_ns"], k)) for k in (0, 1)]
+        assert [r.tracked for r in results] == [False, True]
+        found = [{d.board for d in dets} for dets in results[1].detections]
+        hide = sorted(found[0] & found[1])[:2]
+        assert len(hide) == 2
+        f2 = truth["frames"][2]
+        painted = []
+        for side, image in zip(("left", "right"), images[2]):
+            image = image.copy()
+            for b in f2[f"boards_{side}"]:
+                if b["name"] in hide:
+                    hull = cv2.convexHull(np.array(b["corners"], dtype=np.float32)).astype(np.int32)
+                    cv2.fillConvexPoly(image, hull, 128)
+                    cv2.polylines(image, [hull], True, 128, thickness=int(0.3 * _square_px(b["corners"])) + 8)
+            painted.append(image)
+        result = pipeline.process(_stereo_frame(*painted, f2["stamp_ns"], 2))
+        assert result.tracked and result.pose.valid, result.pose.reason
+        assert all(d.board not in hide for dets in result.detections for d in dets)
+        R_true, t_true = pose_of(f2)
+        assert 1000 * np.linalg.norm(result.pose.t_m - t_true) < 1.0
+        # the whole image searched instead: no more boards than verification kept
+        searched = [{d.board for d in detect(im, cfg.target)} for im in painted]
+        assert all(not (s & set(hide)) for s in searched)
+    finally:
+        pipeline.close()
+
+
+def _square_px(corners: list) -> float:
+    xy = np.array(corners, dtype=float)
+    return float(np.median(np.linalg.norm(np.diff(xy, axis=0), axis=1)))

@@ -28,11 +28,13 @@ import numpy as np
 from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
 from edgecal.detection.completion import verify_predictions
 from edgecal.detection.corner_covariance import corner_covariance
+from edgecal.detection.detector import WINDOW_MARGIN_PX, detect
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import probe_radii
 from edgecal.detection.subpixel import nearest_spacing, on_board_rim, refine_rim, subpixel_window, window_spacing
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.images import as_grey
+from edgecal.targets import Target
 
 DEFAULT_PARAMS = DetectorParams()
 # Share of a board's predicted corners that must be confirmed for the board to be kept.
@@ -42,6 +44,12 @@ MIN_CONFIRMED_FRACTION = 0.5
 # noisy images the bound grows with the corners' own scatter, up to MAX_NOISY_MOTION_RESIDUAL_PX.
 MAX_MOTION_RESIDUAL_PX = 0.5
 MAX_NOISY_MOTION_RESIDUAL_PX = 1.2
+# search_near's window: the predicted corners' bounding box grown by this many of the boards' largest
+# square sizes (one square beyond each board for completion and the border checks, the rest for a
+# prediction a lost track has got wrong) plus detector.WINDOW_MARGIN_PX (probe rings, refinement windows).
+NEAR_MARGIN_SQUARES = 1.5
+# A window larger than this share of the image is not worth it: the image is searched in full instead.
+NEAR_MAX_AREA_FRACTION = 0.6
 
 
 def board_motion(predicted: np.ndarray, found: np.ndarray, max_residual_px: float = MAX_MOTION_RESIDUAL_PX
@@ -257,4 +265,46 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         bounds = np.cumsum([0] + [len(d.corners) for d in found])
         for d, i, j in zip(found, bounds[:-1], bounds[1:]):
             d.covariance, d.unusable = cov[i:j], reasons[i:j]
+    return found
+
+
+def near_window(predictions: Sequence[CornerPrediction], shape: tuple[int, int]) -> tuple[int, int, int, int] | None:
+    """(x0, y0, x1, y1) of the image region search_near searches for ``predictions`` in an image of ``shape``
+    (rows, cols): the predicted corners' bounding box grown by NEAR_MARGIN_SQUARES of the largest square
+    plus WINDOW_MARGIN_PX, clipped to the image. None when nothing is predicted or the region would cover
+    more than NEAR_MAX_AREA_FRACTION of the image (a full search then costs about the same)."""
+    predictions = [pr for pr in predictions if len(pr.ids)]
+    if not predictions:
+        return None
+    h, w = shape
+    xy = np.concatenate([pr.xy for pr in predictions])
+    step = max(float(nearest_spacing(pr.xy).max()) if len(pr.xy) > 1 else 0.0 for pr in predictions)
+    margin = NEAR_MARGIN_SQUARES * step + WINDOW_MARGIN_PX
+    x0, y0 = (max(0, int(np.floor(v - margin))) for v in xy.min(axis=0))
+    x1 = min(w, int(np.ceil(xy[:, 0].max() + margin)) + 1)
+    y1 = min(h, int(np.ceil(xy[:, 1].max() + margin)) + 1)
+    if x1 <= x0 or y1 <= y0 or (x1 - x0) * (y1 - y0) > NEAR_MAX_AREA_FRACTION * w * h:
+        return None
+    return x0, y0, x1, y1
+
+
+def search_near(image: np.ndarray, predictions: Sequence[CornerPrediction], target: Target,
+                params: DetectorParams | None = None) -> list[Detection] | None:
+    """The target's boards found by the full search (detector.detect, all its checks) in the region
+    around the predicted corners (near_window), corners in the whole image's pixels; None when there is
+    no such region (nothing predicted, or it would be most of the image: search the image instead).
+
+    For a track that verification lost (a board the prediction missed by more than its checks allow, too
+    few corners confirmed in a noisy frame): the boards are still near where they were a frame ago, and
+    searching there costs the region's area, not the image's. Boards outside the region are not seen: the
+    caller searches the whole image when the result does not do."""
+    grey = as_grey(image)
+    window = near_window(predictions, grey.shape[:2])
+    if window is None:
+        return None
+    x0, y0, x1, y1 = window
+    found = detect(np.ascontiguousarray(grey[y0:y1, x0:x1]), target, params)
+    offset = np.array([x0, y0], dtype=np.float64)
+    for det in found:
+        det.corners = det.corners + offset
     return found

@@ -34,8 +34,11 @@ class TrackingSettings:
     enabled:                 false: every frame is searched in full (the detector alone).
     max_gap_s:               predictions only from a pose whose frame is at most this much older than
                              the new one (a longer gap, e.g. a stalled camera, and the motion is unknown).
-    min_confirmed_fraction:  share of the predicted corners (left and right together) the detector must
-                             confirm for the tracked frame to stand; fewer and the frame is searched.
+    min_confirmed_fraction:  share of the predicted corners (left and right together) of the boards the
+                             last frame found that the detector must confirm for the tracked frame to stand;
+                             fewer and the frame is searched. A board verification lost is first searched for
+                             around its prediction; one not found there does not count (the pipeline's
+                             FramePipeline._tracked_pose).
     """
 
     enabled: bool = setting(True, doc="false: search every frame in full")
