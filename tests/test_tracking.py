@@ -282,3 +282,19 @@ def test_a_board_hidden_from_verification_is_searched_for_around_its_prediction_
 def _square_px(corners: list) -> float:
     xy = np.array(corners, dtype=float)
     return float(np.median(np.linalg.norm(np.diff(xy, axis=0), axis=1)))
+
+
+def test_the_warm_up_board_has_cut_outer_squares_and_is_found_to_subpixel() -> None:
+    """The live loop's (and bench/detect.py's) warm-up image exercises the rim refinement: its outer
+    squares are cut, its corners still found where they were drawn."""
+    from edgecal.stream.frame_pipeline import warm_up_image
+    from edgecal.targets import planar_target
+
+    image = warm_up_image((640, 480), 9, 6)
+    square = 40                                                    # warm_up_image's largest square
+    x0, y0 = (640 - 10 * square) // 2, (480 - 7 * square) // 2
+    assert image[y0 + square // 10, x0 + square // 10] > 150      # the outer black square is cut short
+    (det,) = detect(image, planar_target(9, 6, 30.0))
+    assert det.complete
+    drawn = np.array([x0 + (1 + det.ids[:, 0]) * square, y0 + (1 + det.ids[:, 1]) * square]).T - 0.5
+    assert np.abs(det.corners - drawn).max() < 0.1

@@ -61,17 +61,23 @@ def grey_image(image: object, size: tuple[int, int], side: str) -> tuple[np.ndar
         return None, str(exc)
 
 
-def warm_up_image(size: tuple[int, int], cols: int, rows: int) -> np.ndarray:
+def warm_up_image(size: tuple[int, int], cols: int, rows: int, outer: float = 0.4) -> np.ndarray:
     """A grey image of ``size`` (width, height) with a slightly blurred chessboard of ``cols`` x ``rows``
-    inner corners in its middle: something for every stage of the detector to work on."""
+    inner corners in its middle, its outer squares cut to ``outer`` of a square: something for every stage
+    of the detector to work on, the rim refinement's kernels (subpixel.refine_rim) included."""
     w, h = size
     square = int(max(8, min(40, w // (cols + 3), h // (rows + 3))))
     image = np.full((h, w), 200, np.uint8)
     x0, y0 = (w - (cols + 1) * square) // 2, (h - (rows + 1) * square) // 2
+    cut = int(round((1.0 - outer) * square))
     for r in range(rows + 1):
         for c in range(cols + 1):
             if (r + c) % 2 == 0:
-                image[y0 + r * square:y0 + (r + 1) * square, x0 + c * square:x0 + (c + 1) * square] = 40
+                xa = x0 + c * square + (cut if c == 0 else 0)
+                xb = x0 + (c + 1) * square - (cut if c == cols else 0)
+                ya = y0 + r * square + (cut if r == 0 else 0)
+                yb = y0 + (r + 1) * square - (cut if r == rows else 0)
+                image[ya:yb, xa:xb] = 40
     return cv2.GaussianBlur(image, (5, 5), 1.0)
 
 
