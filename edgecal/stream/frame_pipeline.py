@@ -202,6 +202,7 @@ class FramePipeline:
         seen = self._seen
         lost = [[p for p in preds if p.board.name in names - {d.board for d in dets}]
                 for preds, dets, names in ((left_pred, left_det, seen[0]), (right_pred, right_det, seen[1]))]
+        verified = [bool(left_det), bool(right_det)]
         if lost[0] or lost[1]:
             right_job = self._pool.submit(self._search_lost, right, lost[1], right_det) if lost[1] else None
             left_det = self._search_lost(left, lost[0], left_det) if lost[0] else left_det
@@ -209,10 +210,12 @@ class FramePipeline:
         result.detections = (left_det, right_det)
         # The share is taken over the boards the last frame found, less those not found around where they
         # must be: a board not found (too steep for the checks, half occluded) is still looked for, but
-        # searching the whole image for it finds it no more than searching where it is.
+        # searching the whole image for it finds it no more than searching where it is. "Where they must
+        # be" only holds in an image where verification confirmed a board where it was predicted: in one
+        # where it confirmed none (the robot jumped, the view is blocked) every board still counts.
         found = [{d.board for d in left_det}, {d.board for d in right_det}]
-        still = [names - {p.board.name for p in lost_k} | (names & found_k)
-                 for names, lost_k, found_k in zip(seen, lost, found)]
+        still = [names - {p.board.name for p in lost_k} | (names & found_k) if held else names
+                 for names, lost_k, found_k, held in zip(seen, lost, found, verified)]
         expected = [p for p in left_pred if p.board.name in still[0]] + \
             [p for p in right_pred if p.board.name in still[1]]
         confirmed = [d for d in left_det if d.board in still[0]] + [d for d in right_det if d.board in still[1]]
