@@ -208,6 +208,9 @@ class FramePipeline:
             left_det = self._search_lost(left, lost[0], left_det) if lost[0] else left_det
             right_det = right_job.result() if right_job is not None else right_det
         result.detections = (left_det, right_det)
+        # A camera that saw boards in the last frame and none now has lost the track: the full search decides.
+        if (seen[0] and not left_det) or (seen[1] and not right_det):
+            return None
         # The share is taken over the boards the last frame found, less those not found around where they
         # must be: a board not found (too steep for the checks, half occluded) is still looked for, but
         # searching the whole image for it finds it no more than searching where it is. "Where they must
