@@ -93,6 +93,19 @@ def _grid_point(grid: np.ndarray, r: int, c: int) -> tuple[float, float]:
     return grid[r, c, 0], grid[r, c, 1]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _rim_side(side: int, c: int, r: int, cols: int, rows: int) -> tuple[bool, int, int]:
+    """Whether the corner (col c, row r) lies on outer line ``side`` (0 first column, 1 last column, 2 first
+    row, 3 last row) of a cols x rows grid, and that side's inward step (dc, dr)."""
+    if side == 0:
+        return c == 0, 1, 0
+    if side == 1:
+        return c == cols - 1, -1, 0
+    if side == 2:
+        return r == 0, 0, 1
+    return r == rows - 1, 0, -1
+
+
 @njit(cache=True, nogil=True)
 def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, half: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
@@ -113,14 +126,8 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
         reaches = False
         for side in range(4):
             # outward step (dc, dr) of this side, and the direction along it
-            if side == 0:
-                on, dc, dr = c == 0, -1, 0
-            elif side == 1:
-                on, dc, dr = c == cols - 1, 1, 0
-            elif side == 2:
-                on, dc, dr = r == 0, 0, -1
-            else:
-                on, dc, dr = r == rows - 1, 0, 1
+            on, dc, dr = _rim_side(side, c, r, cols, rows)
+            dc, dr = -dc, -dr
             if not on:
                 continue
             bx, by = _grid_point(grid, r - dr, c - dc)  # one step inwards
@@ -264,14 +271,7 @@ def _rim_prediction(grid: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.nd
         worst = 0.0
         k = 0
         for side in range(4):
-            if side == 0:
-                on, dc, dr = c == 0, 1, 0
-            elif side == 1:
-                on, dc, dr = c == cols - 1, -1, 0
-            elif side == 2:
-                on, dc, dr = r == 0, 0, 1
-            else:
-                on, dc, dr = r == rows - 1, 0, -1
+            on, dc, dr = _rim_side(side, c, r, cols, rows)
             if not on:
                 continue
             ax, ay = _grid_point(grid, r + dr, c + dc)
@@ -333,14 +333,7 @@ def _rim_misfit(grid: np.ndarray, at: np.ndarray, candidates: np.ndarray) -> np.
         r = at[i, 1]
         total = 0.0
         for side in range(4):
-            if side == 0:
-                on, dc, dr = c == 0, 1, 0
-            elif side == 1:
-                on, dc, dr = c == cols - 1, -1, 0
-            elif side == 2:
-                on, dc, dr = r == 0, 0, 1
-            else:
-                on, dc, dr = r == rows - 1, 0, -1
+            on, dc, dr = _rim_side(side, c, r, cols, rows)
             if not on:
                 continue
             ax, ay = _grid_point(grid, r + dr, c + dc)
