@@ -32,10 +32,7 @@ Pure functions: the detector's smoothed image and the corners in, shifts out.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from numba import njit
 
 from edgecal.detection.subpixel import saddle_fit_setup
 
@@ -70,64 +67,34 @@ REJECT_FLOOR = 1.0
 MAX_LIGHT_SHIFT_PX = 0.5
 
 
-@njit(cache=True, nogil=True)
-def _fit_window_kernel(smooth: np.ndarray, xy: np.ndarray, kern: np.ndarray, half: int, blur_half: int
-                       ) -> np.ndarray:
-    """fit_windows' windows (N, n, n): the image resampled (bilinear) on the pixel grid around each corner
-    xy (N, 2), then smoothed along x and along y by kern (N, 2 blur_half + 1), in the order and with the
-    operations numpy's version had (the same numbers; one pass instead of ~4 (N, 21, 21) gathers)."""
-    n = xy.shape[0]
-    n_fit = 2 * half + 1
-    r0 = half + blur_half
-    n_patch = 2 * r0 + 1
-    nk = 2 * blur_half + 1
-    patch = np.empty((n_patch, n_patch))
-    rows = np.empty((n_patch, n_fit))
-    win = np.empty((n, n_fit, n_fit))
-    for i in range(n):
-        x0 = int(math.floor(xy[i, 0]))
-        y0 = int(math.floor(xy[i, 1]))
-        fx = xy[i, 0] - x0
-        fy = xy[i, 1] - y0
-        for a in range(n_patch):
-            yy = y0 - r0 + a
-            for b in range(n_patch):
-                xx = x0 - r0 + b
-                top = np.float64(smooth[yy, xx]) * (1 - fx) + np.float64(smooth[yy, xx + 1]) * fx
-                bottom = np.float64(smooth[yy + 1, xx]) * (1 - fx) + np.float64(smooth[yy + 1, xx + 1]) * fx
-                patch[a, b] = top * (1 - fy) + bottom * fy
-        for a in range(n_patch):
-            for b in range(n_fit):
-                acc = 0.0
-                for j in range(nk):
-                    acc += patch[a, b + j] * kern[i, j]
-                rows[a, b] = acc
-        for a in range(n_fit):
-            for b in range(n_fit):
-                acc = 0.0
-                for j in range(nk):
-                    acc += rows[a + j, b] * kern[i, j]
-                win[i, a, b] = acc
-    return win
-
-
 def fit_windows(smooth: np.ndarray, corners: np.ndarray, spacing: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The saddle fit's windows at each corner, as saddle_refine fits them (resampled at the corner, smoothed
     once more): (N, n, n) grey levels, n = 2 x the fit's half-width + 1; (N,) bool inside the image; the
     fit's pseudo-inverse (6, n^2); (N,) the extra smoothing sigma (px)."""
     fit, half, blur_half, blur = saddle_fit_setup(spacing)
+    n_fit = 2 * half + 1
     r0 = half + blur_half
     corners = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     h, w = smooth.shape
     inside = (np.isfinite(corners).all(axis=1) & (corners[:, 0] >= r0 + 1) & (corners[:, 1] >= r0 + 1)
               & (corners[:, 0] <= w - r0 - 2) & (corners[:, 1] <= h - r0 - 2))
     xy = np.where(inside[:, None], corners, r0 + 1.0)
+    x0 = np.floor(xy).astype(np.int64)
+    f = xy - x0
+    off = np.arange(-r0, r0 + 1)
+    ys = x0[:, 1, None] + off[None]
+    xs = x0[:, 0, None] + off[None]
+    img = np.asarray(smooth, dtype=np.float64)
+    fx, fy = f[:, 0, None, None], f[:, 1, None, None]
+    top = img[ys[:, :, None], xs[:, None, :]] * (1 - fx) + img[ys[:, :, None], xs[:, None, :] + 1] * fx
+    bottom = img[ys[:, :, None] + 1, xs[:, None, :]] * (1 - fx) + img[ys[:, :, None] + 1, xs[:, None, :] + 1] * fx
+    patch = top * (1 - fy) + bottom * fy
     k = np.arange(-blur_half, blur_half + 1)
     kern = np.exp(-k[None] ** 2 / (2.0 * blur[:, None] ** 2))
     kern /= kern.sum(axis=1, keepdims=True)
-    win = _fit_window_kernel(np.ascontiguousarray(smooth), np.ascontiguousarray(xy), np.ascontiguousarray(kern),
-                             half, blur_half)
+    rows = sum(patch[:, :, j:j + n_fit] * kern[:, j, None, None] for j in range(len(k)))
+    win = sum(rows[:, j:j + n_fit, :] * kern[:, j, None, None] for j in range(len(k)))
     return win, inside, fit, blur
 
 
@@ -143,53 +110,6 @@ def _bilinear(img: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return v, ok
 
 
-@njit(cache=True, nogil=True)
-def _light_lstsq(design: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, int]:
-    """numpy's lstsq of design x = rhs (LAPACK gelsd, rcond eps x the larger side, as numpy's default):
-    the solution and design's rank."""
-    rcond = np.finfo(np.float64).eps * max(design.shape[0], design.shape[1])
-    sol, _res, rank, _sv = np.linalg.lstsq(design, rhs, rcond=rcond)
-    return sol, rank
-
-
-@njit(cache=True, nogil=True)
-def _fit_light_kernel(dd: np.ndarray, lv: np.ndarray, rhs: np.ndarray, tq: np.ndarray, darkest: float,
-                      iterations: int) -> tuple[np.ndarray, float, bool]:
-    """_fit_light's alternation in one compiled call (a board's dozen small least-squares solves cost
-    ~60 us each through numpy's wrapper, most of it Python)."""
-    m, k = tq.shape
-    design = np.empty((m, 2 + 2 * k))
-    design[:, 0] = -dd[:, 0]
-    design[:, 1] = -dd[:, 1]
-    for j in range(k):
-        design[:, 2 + 2 * j] = lv * dd[:, 0] * tq[:, j]
-        design[:, 3 + 2 * j] = lv * dd[:, 1] * tq[:, j]
-    sol, rank = _light_lstsq(design, rhs)
-    coef = np.zeros((k, 2))
-    if rank < design.shape[1] or not np.all(np.isfinite(sol)):
-        return coef, 0.0, False
-    coef[:, :] = sol[2:].reshape(k, 2)
-    c0 = coef[0, 0] * coef[0, 0] + coef[0, 1] * coef[0, 1]
-    black = (sol[0] * coef[0, 0] + sol[1] * coef[0, 1]) / c0 if c0 > 0 else 0.0
-    design = np.empty((m, 2 * k))
-    for _ in range(iterations):
-        # a black level cannot lie below 0 or above the darkest squares
-        black = min(max(black, 0.0), darkest)
-        for j in range(k):
-            design[:, 2 * j] = (lv - black) * dd[:, 0] * tq[:, j]
-            design[:, 2 * j + 1] = (lv - black) * dd[:, 1] * tq[:, j]
-        sol, rank = _light_lstsq(design, rhs)
-        if rank < 2 * k:
-            break
-        coef[:, :] = sol.reshape(k, 2)
-        ud = np.sum(dd * (tq @ coef), axis=1)
-        uu = ud @ ud
-        if uu <= 0:
-            break
-        black = ((lv * ud - rhs) @ ud) / uu
-    return coef, min(max(black, 0.0), darkest), True
-
-
 def _fit_light(dd: np.ndarray, lv: np.ndarray, rhs: np.ndarray, tq: np.ndarray, darkest: float
                ) -> tuple[np.ndarray, float] | None:
     """One board's light field from its readings: (k, 2) coefficients of u over the terms tq (M, k) and
@@ -198,12 +118,26 @@ def _fit_light(dd: np.ndarray, lv: np.ndarray, rhs: np.ndarray, tq: np.ndarray, 
 
     (I+ - I-) / 2 = (I_sq - b0) (u(q) . d), u(q) = sum_j terms_j(q) u_j: linear in u for a given b0 and in
     b0 for a given u. Started from b0 u(q) ~ b0 u0 (linear in both), then alternated."""
-    coef, black, ok = _fit_light_kernel(np.ascontiguousarray(dd, dtype=np.float64),
-                                        np.ascontiguousarray(lv, dtype=np.float64),
-                                        np.ascontiguousarray(rhs, dtype=np.float64),
-                                        np.ascontiguousarray(tq, dtype=np.float64), float(darkest),
-                                        BLACK_LEVEL_ITERATIONS)
-    return (coef, black) if ok else None
+    k = tq.shape[1]
+    design = np.concatenate([-dd] + [lv[:, None] * dd * tq[:, j, None] for j in range(k)], axis=1)
+    sol, _res, rank, _sv = np.linalg.lstsq(design, rhs, rcond=None)
+    if rank < design.shape[1] or not np.all(np.isfinite(sol)):
+        return None
+    coef = sol[2:].reshape(k, 2)
+    black = float(sol[:2] @ coef[0] / (coef[0] @ coef[0])) if coef[0] @ coef[0] > 0 else 0.0
+    for _ in range(BLACK_LEVEL_ITERATIONS):
+        # a black level cannot lie below 0 or above the darkest squares
+        black = float(np.clip(black, 0.0, darkest))
+        design = np.concatenate([(lv - black)[:, None] * dd * tq[:, j, None] for j in range(k)], axis=1)
+        sol, _res, rank, _sv = np.linalg.lstsq(design, rhs, rcond=None)
+        if rank < design.shape[1]:
+            break
+        coef = sol.reshape(k, 2)
+        ud = np.sum(dd * (tq @ coef), axis=1)
+        if ud @ ud <= 0:
+            break
+        black = float((lv * ud - rhs) @ ud / (ud @ ud))
+    return coef, float(np.clip(black, 0.0, darkest))
 
 
 def _order(count: int) -> int:
@@ -230,7 +164,7 @@ def board_light_field(smooth: np.ndarray, corners: np.ndarray, steps: np.ndarray
     n = len(corners)
     u = np.zeros((n, 2))
     b0 = np.zeros(n)
-    img = smooth  # sampled as float32, promoted to float64 per sample (no copy of the image)
+    img = np.asarray(smooth, dtype=np.float64)
     # Per corner and diagonal k: half the diagonal d between the two squares, their mean and half their
     # difference.
     d = np.stack([LIGHT_PROBE * (steps[:, 0] + steps[:, 1]), LIGHT_PROBE * (steps[:, 0] - steps[:, 1])], axis=1)
@@ -277,18 +211,15 @@ def inner_squares(ids: np.ndarray, groups: np.ndarray) -> np.ndarray:
     +row) and (-col, -row); k = 1: towards (+col, -row) and (-col, +row)) lie inside its board's grid of
     found corners, ids (N, 2) (col, row), groups (N,) the board of each corner."""
     ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
-    groups = np.asarray(groups).reshape(len(ids))
     out = np.zeros((len(ids), 2), dtype=bool)
     for g in np.unique(groups):
         members = np.nonzero(groups == g)[0]
-        # the board's found corners on a grid padded by one: every neighbour looked up lies on it
-        at = ids[members] - ids[members].min(axis=0) + 1
-        found = np.zeros(tuple(at.max(axis=0) + 2), dtype=bool)
-        found[at[:, 0], at[:, 1]] = True
-        c, r = at[:, 0], at[:, 1]
-        for k, dr in enumerate((1, -1)):
-            out[members, k] = (found[c + 1, r] & found[c, r + dr] & found[c + 1, r + dr]
-                               & found[c - 1, r] & found[c, r - dr] & found[c - 1, r - dr])
+        have = {tuple(i) for i in ids[members]}
+        for m in members:
+            c, r = ids[m]
+            for k, (dc, dr) in enumerate(((1, 1), (1, -1))):
+                out[m, k] = all((c + sc * x, r + sc * y) in have for sc in (1, -1)
+                                for x, y in ((dc, 0), (0, dr), (dc, dr)))
     return out
 
 
