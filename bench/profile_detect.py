@@ -65,8 +65,6 @@ STAGES = (
     ("edgecal.detection.detector", "grid_is_regular", "ids+checks"),
     ("edgecal.detection.detector", "_corner_quality", "quality"),
     ("edgecal.detection.detector", "corner_covariance", "covariance"),
-    ("edgecal.detection.detector", "saddle_light_shift", "light"),
-    ("edgecal.detection.corner_covariance", "saddle_light_shift", "light"),
     ("edgecal.detection.detector", "_outside_boards", "exclusion"),
     ("edgecal.detection.board_corners", "refine_corners", "subpixel"),
     ("edgecal.detection.board_corners", "nearest_spacing", "spacing"),

@@ -106,9 +106,7 @@ def test_covariance_shape_follows_the_errors(photometric: str) -> None:
     """The saddle fit's covariances are not more elongated than its errors: the mean squared error along
     each covariance's minor and major axis over the variance there are both near 1 (a model error in the
     shape of H^-1 or A^-1 gave 0.44-0.64 along the major axis and covariances 1.7-2.2x elongated)."""
-    # 40 foreshortened views: its covariances are nearly round (major / minor sigma < 1.2), so which axis is
-    # the minor one is set by small differences, and 20 views' shared errors decide it (1.30 / 0.84 there)
-    e, cov = _errors(photometric, views=40 if photometric == "foreshortened" else 20)
+    e, cov = _errors(photometric, views=20)
     w, v = np.linalg.eigh(cov)
     along = np.einsum("nji,nj->ni", v, e)
     minor, major = np.mean(along ** 2 / w, axis=0)
@@ -239,28 +237,3 @@ def test_noise_estimate_sees_compressed_noise() -> None:
     assert covariance_noise_sigma(noisy) == pytest.approx(6.0, rel=0.2)
     assert estimate_noise_sigma(jpeg) < 1.0          # the detector's pixel-level estimate is fooled
     assert covariance_noise_sigma(jpeg) > 2.5
-
-
-def test_corners_beside_thin_squares_are_covered() -> None:
-    """Strongly foreshortened boards: the corners whose neighbouring square is under 10 px across (the next
-    edges inside the saddle fit's window) get a covariance that covers their error (mean normalised error
-    100 at 6-8 px and 9 at 8-10 px without the neighbour term, bench renders)."""
-    nees = []
-    for k in range(30):
-        view = _view("foreshortened", k)
-        if not view.truth["boards"]:
-            continue
-        truth = view.corners(0)
-        for det in edgecal.detect(view.image, TARGET):
-            steps = grid_steps(det.ids, det.corners)
-            la, lb = np.linalg.norm(steps[:, 0], axis=1), np.linalg.norm(steps[:, 1], axis=1)
-            h = np.abs(steps[:, 0, 0] * steps[:, 1, 1] - steps[:, 0, 1] * steps[:, 1, 0]) / np.maximum(la, lb)
-            ok = det.usable() & (h < 10)
-            d = np.linalg.norm(det.corners[:, None] - truth[None], axis=2)
-            j = d.argmin(axis=1)
-            near = ok & (d[np.arange(len(j)), j] < 1.5)
-            e = det.corners[near] - truth[j[near]]
-            nees.append(np.einsum("ni,nij,nj->n", e, np.linalg.inv(det.covariance[near]), e))
-    nees = np.concatenate(nees)
-    assert len(nees) > 20, len(nees)
-    assert nees.mean() < 4.0, (nees.mean(), len(nees))

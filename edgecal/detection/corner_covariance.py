@@ -22,9 +22,10 @@ symmetry, pixels and quantisation limit a clean image (an edge along a pixel axi
 For the saddle fit it is isotropic (measured: its errors beyond noise have no preferred direction, also on
 foreshortened corners; cornerSubPix's model error in A^-1's shape made its covariances 1.7-2.2x elongated
 where the errors were not): a floor that grows for an edge within ~10 deg of a pixel axis
-(pixel locking), a share of the light field's shift (light_bias: predicted from the board's squares and
-taken off the detector's corners, so only what the prediction misses is model error), the next edges
-reaching into the fit window on strongly foreshortened boards, and the Newton step the fit still sees
+(pixel locking), the saddle's shift by the light field (a light field L(x) times the pattern adds
+m = grad L x the saddle's level to the fit's linear terms: H^-1 m, no fitted factor; grad L is read off
+the squares next to the corner, diagonally opposite ones having the same colour, not off the window's
+mean gradient, which neighbouring edges and perspective move too) and the Newton step the fit still sees
 at the corner. For cornerSubPix, in A^-1's shape (a light gradient biases it along its weak direction): a
 floor and a gain on the window's asymmetry |mean gradient| / contrast.
 bench/corner_noise.py measures the normalised error e^T Sigma^-1 e on renders with exact truth (2 on
@@ -45,9 +46,7 @@ import math
 import numpy as np
 from numba import njit
 
-from edgecal.detection.light_bias import saddle_light_shift
 from edgecal.detection.subpixel import (
-    _SADDLE_WEIGHT_SIGMA,
     REFINERS,
     fit_coefficients,
     nearest_spacing,
@@ -85,26 +84,8 @@ REASON_DISAGREE = "saddle fit and cornerSubPix disagree by more than 1 px (not o
 # not show). A real lens and sensor add more; calibration's noise floor (calibration/refine.py) measures it.
 SADDLE_FLOOR_PX = 0.002
 PIXEL_LOCK_PX = 0.008
+PROBE_NOISE_SHARE = 0.0  # see _saddle_covariance
 PIXEL_LOCK_LENGTH_PX = 1.3
-# The light field's shift (light_bias.saddle_light_shift) is taken off the detector's corners; what the
-# first-order prediction leaves (the optics' blur it leaves out, a light field not affine over the board,
-# the black level's estimate) is LIGHT_MODEL_SHARE of it per corner. Measured on bench/corner_noise.py's
-# renders: the errors left correlate with the predicted shift with a gain of 1.06-1.12, and with 0.2 the
-# uneven-light set's mean normalised error is 2.0 (0 gives 2.7, 0.4 gives 1.4).
-LIGHT_MODEL_SHARE = 0.2
-# The next edges in the fit window: on a strongly foreshortened board (or small squares) the square beside
-# the corner is only h px wide across, the edges beyond it reach into the 11x11 fit and, where they are
-# not point-symmetric about the corner, bias it: NEIGHBOUR_PX x exp(-h^2 / 2 r^2) across those edges and
-# half that along them, r^2 the fit's weight width (3 px) squared plus the smoothing's. Measured (errors
-# beyond the rest of the model, binned by h): on the foreshortened renders (tilts to 78 deg) per axis
-# 0.14 px at h 6-8 px, 0.030 at 8-10, 0.008 at 10-15, a fall-off that form with r ~3.5 px follows, across /
-# along the edges 0.127 / 0.067 px below h = 10 px: an amplitude of 1.25 px across; on bench/calibrate.py's
-# hand-held planar sessions, whose small squares face the camera (neighbours nearly symmetric), 0.6 (mean
-# normalised error of their corners below h = 8 px 13 without the term, 0.5 with 1.25). The amplitude
-# follows the neighbours' asymmetry, which is not modelled; 0.6 is taken (foreshortened renders: mean
-# normalised error 2.3 instead of 2.1; the hand-held calibrations weigh those corners as they are).
-# h >= 15 px, most corners, get < 1e-3 px.
-NEIGHBOUR_PX = 0.6
 #
 # cornerSubPix's model error: a floor (pixel sampling and locking, quantisation, the renderer's and a lens'
 # small departures from an ideal X-junction) and the gain on the window's asymmetry
@@ -121,9 +102,9 @@ ASYMMETRY_GAIN = 1.2
 _PYRDOWN_NOISE_GAIN = 0.273
 # Largest condition number of a usable covariance: beyond it the corner is a line, not a point.
 MAX_CONDITION = 1e6
-# saddle_statistics' own light reading (S_LIGHT*, S_LN*; no longer used by the model, which reads the light
-# over the whole board in light_bias): at +-SQUARE_PROBE x (a +- b) from the corner (a, b its steps to the
-# next column and row), half way to the four squares' centres.
+# Where the light field is read: at +-SQUARE_PROBE x (a +- b) from the corner (a, b its steps to the next
+# column and row), half way to the four squares' centres: inside them, 0.25 squares from their edges, also
+# where a real board's outer squares are cut short at its rim.
 SQUARE_PROBE = 0.25
 # A saddle fit that would move the corner further than this (px) from where it is reported (the detector
 # keeps cornerSubPix's position when the fit would move it more than saddle_refine's 1 px): the two
@@ -544,8 +525,8 @@ def noise_kernel(smoothing_sigma: float) -> np.ndarray:
 
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
                       spacing: np.ndarray | None = None, noise_sigma: float | None = None, *, refiner: str,
-                      steps: np.ndarray | None = None, boards: np.ndarray | None = None,
-                      light_shift: np.ndarray | None = None) -> tuple[np.ndarray, list[str]]:
+                      steps: np.ndarray | None = None, boards: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, list[str]]:
     """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, and why a corner is unusable.
 
     grey: (H, W) uint8, the image; smooth: the detector's smoothed float32 image of it (candidates.smooth_image
@@ -555,12 +536,10 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     (default: measured on grey). refiner: the refinement that placed the corners, "cornersubpix" or
     "saddle" (subpixel.REFINERS); a corner the saddle fit does not see as a saddle kept cornerSubPix's
     position and gets its covariance. steps: (N, 2, 2) the board's local steps to the next column and row
-    (grid_steps), for the saddle fit's model error (default: read off the fit; no neighbour term);
-    boards: (N,) int, which board each corner is on, over which the light field is fitted (default: all
-    one board); light_shift: (N, 2) light_bias.saddle_light_shift of these corners when the caller has it
-    (the detector takes it off its corners after this call; default: computed here). The covariance is of
-    the corners as placed less that shift. Returns (N, 2, 2) covariances, NaN for an unusable corner, and
-    (N,) reasons ("" for a usable one).
+    (grid_steps), for the saddle fit's model error (default: read off the fit); boards: (N,) int, which
+    board each corner is on: the light field, smooth over a board, is averaged over its corners (default:
+    each corner alone). Returns (N, 2, 2)
+    covariances, NaN for an unusable corner, and (N,) reasons ("" for a usable one).
     """
     if refiner not in REFINERS:
         raise ValueError(f"unknown refiner {refiner!r} ({', '.join(REFINERS)})")
@@ -583,16 +562,13 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         fit, fit_half, blur_half, blur = saddle_fit_setup(spacing)
         if steps is None:
             steps = np.full((n, 2, 2), np.nan)
-        steps = np.ascontiguousarray(steps, dtype=np.float64).reshape(n, 2, 2)
         sd = saddle_statistics(smooth, corners, blur, gauss, np.ascontiguousarray(fit), fit_half, blur_half,
-                               np.ascontiguousarray(spacing, dtype=np.float64), steps)
+                               np.ascontiguousarray(spacing, dtype=np.float64),
+                               np.ascontiguousarray(steps, dtype=np.float64).reshape(n, 2, 2))
         fitted = (sd[:, S_OK] > 0) & (st[:, W_INSIDE] > 0)
-        if light_shift is None:
-            groups = np.zeros(n, dtype=np.int64) if boards is None else np.asarray(boards, dtype=np.int64)
-            light_shift = saddle_light_shift(smooth, smoothing_sigma, corners, spacing, steps, groups)
-        light_shift = np.asarray(light_shift, dtype=np.float64).reshape(n, 2)
-        neighbours = neighbour_error(steps, smoothing_sigma, blur)
-        cov[fitted] = _saddle_covariance(sd[fitted], noise2, light_shift[fitted], neighbours[fitted])
+        if boards is not None:
+            sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
+        cov[fitted] = _saddle_covariance(sd[fitted], noise2)
         ok |= fitted
         disagree = fitted & (np.hypot(sd[:, S_STEPX], sd[:, S_STEPY]) > MAX_SADDLE_STEP_PX)
     else:
@@ -605,30 +581,6 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
                         [REASON_BORDER, REASON_FLAT, REASON_DEGENERATE, REASON_DISAGREE], default="")
     cov[reasons != ""] = np.nan
     return cov, reasons.tolist()
-
-
-def neighbour_error(steps: np.ndarray, smoothing_sigma: float, blur: np.ndarray) -> np.ndarray:
-    """(N, 2, 2) px^2: the bias of the next edges reaching into the saddle fit's window.
-
-    h: the smaller height of the parallelogram the corner's steps (N, 2, 2) span, the distance from the
-    corner across the thin square to the edges beyond it, which run along the longer step; their reach
-    into the fit: exp(-h^2 / 2 r^2), r^2 the fit's weight width squared plus the detector's
-    (smoothing_sigma) and the fit's own smoothing (blur (N,)) squared. NEIGHBOUR_PX x reach across those
-    edges, half that along them; 0 where the steps are unknown.
-    """
-    steps = np.asarray(steps, dtype=np.float64).reshape(-1, 2, 2)
-    la = np.hypot(steps[:, 0, 0], steps[:, 0, 1])
-    lb = np.hypot(steps[:, 1, 0], steps[:, 1, 1])
-    area = np.abs(steps[:, 0, 0] * steps[:, 1, 1] - steps[:, 0, 1] * steps[:, 1, 0])
-    longer = np.where((la >= lb)[:, None], steps[:, 0], steps[:, 1])
-    known = np.isfinite(area) & (np.maximum(la, lb) > 0)
-    h = np.where(known, area / np.where(known, np.maximum(la, lb), 1.0), np.inf)
-    r2 = _SADDLE_WEIGHT_SIGMA ** 2 + smoothing_sigma ** 2 + np.asarray(blur, dtype=np.float64) ** 2
-    sigma = NEIGHBOUR_PX * np.exp(-h ** 2 / (2.0 * r2))
-    along = np.where(known[:, None], longer / np.where(known, np.maximum(la, lb), 1.0)[:, None], 0.0)
-    across = np.stack([-along[:, 1], along[:, 0]], axis=1)
-    return sigma[:, None, None] ** 2 * (across[:, :, None] * across[:, None, :]
-                                         + 0.25 * along[:, :, None] * along[:, None, :])
 
 
 def _cornersubpix_covariance(st: np.ndarray, half: np.ndarray, noise2: float, det: np.ndarray) -> np.ndarray:
@@ -648,20 +600,56 @@ def _cornersubpix_covariance(st: np.ndarray, half: np.ndarray, noise2: float, de
     return cov_noise + (model2 * 0.5 * tr)[:, None, None] * ai
 
 
-def _saddle_covariance(sd: np.ndarray, noise2: float, light_shift: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
-    """The saddle fit's corners (N, 2, 2) from its statistics sd (N, N_SADDLE), the noise variance, the light
-    field's predicted shift (N, 2) px, taken off the corners, and the next edges' bias (neighbour_error).
+def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
+    """The saddle fit's corners (N, 2, 2) from its statistics sd (N, N_SADDLE) and the noise variance.
 
     Noise: the fit's saddle s solves H s = -(d, e), so dq = -H^-1 (dd, de) and Sigma = H^-1 N H^-1 x
     noise2 (N: the covariance of the linear terms per unit raw noise). Model error, isotropic: the floor
-    with the pixel-locking of an edge along a pixel axis, LIGHT_MODEL_SHARE of the light's shift and the
-    Newton step the fit still sees (not converged, or refused); and the next edges inside the window.
+    with the pixel-locking of an edge along a pixel axis, the bias a light field puts on the fit (its
+    gradient m at the saddle's level adds m to the linear terms, moving the saddle by H^-1 m), and the
+    Newton step the fit still sees (not converged, or refused).
     """
+    hi = np.linalg.inv(np.stack([sd[:, S_HXX], sd[:, S_HXY], sd[:, S_HXY], sd[:, S_HYY]],
+                                axis=1).reshape(-1, 2, 2))
+    bias = (hi @ sd[:, [S_LIGHTX, S_LIGHTY], None])[:, :, 0]
+    # The light probe's own noise inflates |bias|^2 by the trace of its covariance (S_LN*). Taking it off
+    # (PROBE_NOISE_SHARE 1) predicted 2.6x the probe scatter seen on clean renders and left the uneven-light
+    # set 3x over-confident, so it is not taken off (0): on noisy images the light term double-counts noise.
+    ln = np.stack([sd[:, S_LNXX], sd[:, S_LNXY], sd[:, S_LNXY], sd[:, S_LNYY]], axis=1).reshape(-1, 2, 2)
+    probe_noise = noise2 * np.trace(hi @ ln @ hi, axis1=1, axis2=2)
+    bias2 = np.maximum((bias ** 2).sum(axis=1) - PROBE_NOISE_SHARE * probe_noise, 0.0)
     locking = np.exp(-2.0 * np.pi ** 2 * (PIXEL_LOCK_LENGTH_PX * np.tan(sd[:, S_AXIS_ANGLE])) ** 2)
-    model2 = (SADDLE_FLOOR_PX ** 2 + PIXEL_LOCK_PX ** 2 * locking
-              + 0.5 * LIGHT_MODEL_SHARE ** 2 * np.sum(light_shift ** 2, axis=1)
+    model2 = (SADDLE_FLOOR_PX ** 2 + PIXEL_LOCK_PX ** 2 * locking + 0.5 * bias2
               + 0.5 * (sd[:, S_STEPX] ** 2 + sd[:, S_STEPY] ** 2))
-    return saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2) + neighbours
+    return saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
+
+
+def _board_light(sd: np.ndarray, boards: np.ndarray) -> np.ndarray:
+    """sd with each corner's light gradient replaced by its board's mean gradient of log light times the
+    corner's level (sd (N, N_SADDLE), boards (N,)). A light field is smooth over a board, while each corner's
+    own reading carries the image noise of four samples: on renders with no light gradient but noise up to
+    4 grey levels those readings alone gave biases as large as a real 25 % gradient, and weighting by them
+    cost the pose 40 % of its accuracy."""
+    out = sd.copy()
+    level = sd[:, S_LEVEL]
+    read = (sd[:, S_OK] > 0) & (np.abs(level) > 1.0) & ((sd[:, S_LIGHTX] != 0) | (sd[:, S_LIGHTY] != 0))
+    if not read.any():
+        return out
+    k = int(boards.max()) + 1
+    count = np.bincount(boards[read], minlength=k)
+    gl = np.zeros((len(sd), 2))
+    gl[read] = sd[read][:, [S_LIGHTX, S_LIGHTY]] / level[read, None]
+    sums = np.stack([np.bincount(boards[read], weights=gl[read, j], minlength=k) for j in range(2)], axis=1)
+    mean = sums.astype(np.float64) / np.maximum(count, 1)[:, None]
+    out[:, S_LIGHTX] = level * mean[boards, 0]
+    out[:, S_LIGHTY] = level * mean[boards, 1]
+    # the mean's own noise: the corners' probe noise over their number
+    for col in (S_LNXX, S_LNXY, S_LNYY):
+        v = np.zeros(len(sd))
+        v[read] = sd[read, col] / level[read] ** 2
+        out[:, col] = level ** 2 * np.bincount(boards[read], weights=v[read], minlength=k)[boards] / np.maximum(
+            count[boards], 1) ** 2
+    return out
 
 
 def saddle_noise_term(sd: np.ndarray, noise2: float) -> np.ndarray:

@@ -32,7 +32,6 @@ from edgecal.detection.completion import complete_grid, trim_false_edges
 from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma, grid_steps
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
-from edgecal.detection.light_bias import saddle_light_shift
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
@@ -172,18 +171,12 @@ def add_covariances(detections: list[Detection], level: Level, p: DetectorParams
     noise = covariance_noise_sigma(level.image, level.half_noise)
     steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
     boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
-    # The saddle fit's shift by the light field is taken off its corners (light_bias); the covariance is
-    # of the corners so corrected.
-    ids = np.concatenate([d.ids for d in detections])
-    shift = (saddle_light_shift(level.smooth, level.smoothing_sigma, xy, spacing, steps, boards, ids)
-             if p.subpixel_refiner == "saddle" else np.zeros_like(xy))
     cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
-                                     refiner=p.subpixel_refiner, steps=steps, boards=boards, light_shift=shift)
+                                     refiner=p.subpixel_refiner, steps=steps, boards=boards)
     start = 0
     for d in detections:
         d.covariance = cov[start:start + len(d.corners)]
         d.unusable = reasons[start:start + len(d.corners)]
-        d.corners = d.corners - shift[start:start + len(d.corners)]
         start += len(d.corners)
 
 
