@@ -162,9 +162,10 @@ class FramePipeline:
         result = FrameResult(Pose.invalid("not processed"))
         try:
             pose = None
-            predicted = self.tracker.predict(frame.stamp_ns) if left is not None and right is not None else None
-            if predicted is not None:
-                pose = self._tracked_pose(predicted, left, right, result)
+            if left is not None and right is not None:
+                predicted = self.tracker.predict(frame.stamp_ns)
+                if predicted is not None:
+                    pose = self._tracked_pose(predicted, left, right, result)
             if pose is not None:
                 result.tracked = True
             else:
