@@ -195,6 +195,10 @@ def test_null_sections_and_files_keep_their_defaults(sequence: tuple[Path, dict]
     with pytest.raises(ConfigError) as err:
         load_live_config(cfg)
     assert str(err.value) == f"{cfg}: field 'detector' names a file that does not exist: 'no-such-detector.yaml'"
+    doc["detector"] = str(tmp_path)                      # a folder: said so, not "does not exist"
+    cfg.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match="field 'detector' names a folder, not a file"):
+        load_live_config(cfg)
 
 
 def test_the_live_source_keeps_only_the_newest_frame_unless_told_otherwise(sequence: tuple[Path, dict],

@@ -95,6 +95,8 @@ def _resolve(r: ConfigReader, key: str, packaged: bool) -> Path:
         q = packaged_config_path(name)
         if q.is_file():
             return q
+    if p.is_dir():
+        raise r.fail(key, f"names a folder, not a file: {quote(name)}")
     raise r.fail(key, f"names a file that does not exist: {quote(name)}")
 
 
