@@ -99,11 +99,17 @@ def test_predicted_corners_match_the_rendered_truth(robot) -> None:
                 assert len(preds[name].ids) >= 0.9 * rendered
 
 
-def test_tracking_confirms_displaced_predictions_to_subpixel(robot) -> None:
+def left_view(robot) -> tuple:
+    """The robot sequence's frame 1, left camera: (config, frame truth, grey image, the boards' corners
+    predicted from the true pose)."""
     folder, truth, cfg = robot
     frame = truth["frames"][1]
     image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
-    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    return cfg, frame, image, predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+
+
+def test_tracking_confirms_displaced_predictions_to_subpixel(robot) -> None:
+    cfg, frame, image, preds = left_view(robot)
     # The prediction of a moving robot is a few pixels off: shift every board by 2.5 px.
     shifted = [CornerPrediction(p.board, p.ids, p.xy + np.array([2.0, -1.5])) for p in preds]
     found = track_boards(image, shifted)
@@ -116,10 +122,7 @@ def test_tracking_confirms_displaced_predictions_to_subpixel(robot) -> None:
 
 
 def test_tracking_rejects_boards_that_are_not_there(robot) -> None:
-    folder, truth, cfg = robot
-    frame = truth["frames"][1]
-    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
-    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    cfg, frame, image, preds = left_view(robot)
     # Ids off by one column: every corner lands on a real corner, but the square colours are inverted.
     off_by_one = [CornerPrediction(p.board, p.ids + np.array([1, 0]), p.xy) for p in preds]
     assert track_boards(image, off_by_one) == []
@@ -195,10 +198,7 @@ def test_loop_tracks_and_searches_again_when_the_robot_jumps(robot, tmp_path: Pa
 def test_tracking_recovers_corners_a_scaled_prediction_misses_at_first(robot) -> None:
     """The robot came closer than predicted: each board's predictions are 8 % too small about its centre,
     so its outer corners are more than a quarter square off. The motion fitted to the inner corners finds them."""
-    folder, truth, cfg = robot
-    frame = truth["frames"][1]
-    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
-    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    cfg, frame, image, preds = left_view(robot)
     shrunk = [CornerPrediction(p.board, p.ids, p.xy.mean(axis=0) + 0.92 * (p.xy - p.xy.mean(axis=0))) for p in preds]
     seen = truth_corners(frame, "left")
     found = {d.board: d for d in track_boards(image, shrunk)}
@@ -213,10 +213,7 @@ def test_tracking_recovers_corners_a_scaled_prediction_misses_at_first(robot) ->
 
 
 def test_search_near_finds_the_boards_around_their_prediction(robot) -> None:
-    folder, truth, cfg = robot
-    frame = truth["frames"][1]
-    image = cv2.imread(str(folder / frame["left"]), cv2.IMREAD_GRAYSCALE)
-    preds = predict_corners(*pose_of(frame), cfg.cameras, "left", cfg.target)
+    cfg, frame, image, preds = left_view(robot)
     # a lost track's prediction is some pixels off: the window still holds the boards
     moved = [CornerPrediction(p.board, p.ids, p.xy + np.array([6.0, -4.0])) for p in preds]
     x0, y0, x1, y1 = near_window(moved, image.shape)
