@@ -191,8 +191,8 @@ class StereoRig:
 def _radtan_distort(x: np.ndarray, y: np.ndarray, d: np.ndarray, want_jac: bool) -> tuple:
     """OpenCV's distortion of normalised (x, y); d = (k1 k2 p1 p2 k3 [k4 k5 k6]).
 
-    Returns xd, yd and, if asked, d(xd, yd)/d(x, y) as (a, b, c, e) = [[a, b], [c, e]] and
-    d(xd, yd)/d(params) (..., 2, len(d)).
+    Returns xd, yd and, if asked, d(xd, yd)/d(x, y) as (a, b, c, e) = [[a, b], [c, e]] (the derivatives by
+    the parameters are _radtan_param_jacobian's: Newton's inverse needs only these).
     """
     k1, k2, p1, p2, k3 = d[0], d[1], d[2], d[3], d[4]
     k4, k5, k6 = (d[5], d[6], d[7]) if len(d) == 8 else (0.0, 0.0, 0.0)
@@ -211,6 +211,18 @@ def _radtan_distort(x: np.ndarray, y: np.ndarray, d: np.ndarray, want_jac: bool)
     a = c + 2.0 * x * x * dc + 2.0 * p1 * y + 6.0 * p2 * x
     b = 2.0 * x * y * dc + 2.0 * p1 * x + 2.0 * p2 * y
     e = c + 2.0 * y * y * dc + 6.0 * p1 * y + 2.0 * p2 * x
+    return xd, yd, (a, b, b, e)
+
+
+def _radtan_param_jacobian(x: np.ndarray, y: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """d(xd, yd)/d(params) (..., 2, len(d)) of _radtan_distort at normalised (x, y)."""
+    k1, k2, k3 = d[0], d[1], d[4]
+    k4, k5, k6 = (d[5], d[6], d[7]) if len(d) == 8 else (0.0, 0.0, 0.0)
+    r2 = x * x + y * y
+    num = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1.0 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    c = num / den
+    xy2 = 2.0 * x * y
     r4, r6 = r2 * r2, r2 * r2 * r2
     jp = np.zeros(x.shape + (2, len(d)))
     for i, rk in ((0, r2), (1, r4), (4, r6)):
@@ -222,7 +234,7 @@ def _radtan_distort(x: np.ndarray, y: np.ndarray, d: np.ndarray, want_jac: bool)
         for i, rk in ((5, r2), (6, r4), (7, r6)):
             jp[..., 0, i] = -x * c * rk / den
             jp[..., 1, i] = -y * c * rk / den
-    return xd, yd, (a, b, b, e), jp
+    return jp
 
 
 def _theta_poly(theta: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -290,7 +302,7 @@ def project(p_cam: np.ndarray, camera: CameraModel, get_gradients: bool = False)
         jx = np.stack([zi, np.zeros_like(zi), -x * zi], axis=-1)
         jy = np.stack([np.zeros_like(zi), zi, -y * zi], axis=-1)
         jd = np.stack([a[..., None] * jx + b[..., None] * jy, c[..., None] * jx + e[..., None] * jy], axis=-2)
-        dparams = out[3]
+        dparams = _radtan_param_jacobian(x, y, d)
     dq_dp = jd * f[:, None]
     dq_di = np.zeros(X.shape + (2, 4 + len(d)))
     dq_di[..., 0, 0] = xd
@@ -316,7 +328,7 @@ def _radtan_undistort(xd: np.ndarray, yd: np.ndarray, d: np.ndarray) -> tuple[np
     """
     x, y = xd.copy(), yd.copy()
     for _ in range(_NEWTON_ITERATIONS):
-        fx_, fy_, (a, b, c, e), _ = _radtan_distort(x, y, d, True)
+        fx_, fy_, (a, b, c, e) = _radtan_distort(x, y, d, True)
         rx, ry = fx_ - xd, fy_ - yd
         det = a * e - b * c
         bad = ~(det > 1e-9)
@@ -327,11 +339,11 @@ def _radtan_undistort(xd: np.ndarray, yd: np.ndarray, d: np.ndarray) -> tuple[np
             break
     fx_, fy_ = _radtan_distort(x, y, d, False)
     ok = np.abs(fx_ - xd) + np.abs(fy_ - yd) < 1e-12
-    # fold check: the Jacobian determinant stays positive on the segment from the axis
-    for k in range(1, _FOLD_SAMPLES + 1):
-        s = k / _FOLD_SAMPLES
-        a, b, c, e = _radtan_distort(s * x, s * y, d, True)[2]
-        ok &= (a * e - b * c) > 1e-9
+    # fold check: the Jacobian determinant stays positive on the segment from the axis (all the samples
+    # of all the points in one call: elementwise, the same numbers as one call per sample)
+    s = (np.arange(1, _FOLD_SAMPLES + 1) / _FOLD_SAMPLES).reshape((-1,) + (1,) * x.ndim)
+    a, b, c, e = _radtan_distort(s * x, s * y, d, True)[2]
+    ok &= np.all((a * e - b * c) > 1e-9, axis=0)
     return np.where(ok, x, np.nan), np.where(ok, y, np.nan)
 
 
