@@ -189,7 +189,8 @@ def latency(messages: list[dict]) -> dict:
            "first_ms": float(lat[0]), "acquisition_frames": tracked[1] if len(tracked) > 1 else len(poses),
            "acquisition_max_ms": float(lat[:tracked[1]].max()) if len(tracked) > 1 else float(lat.max())}
     if steady.size:
-        out.update({"steady_median_ms": float(np.median(steady)), "steady_p99_ms": float(np.percentile(steady, 99)),
+        out.update({"steady_median_ms": float(np.median(steady)), "steady_p95_ms": float(np.percentile(steady, 95)),
+                    "steady_p99_ms": float(np.percentile(steady, 99)),
                     "steady_max_ms": float(steady.max()), "steady_n": int(steady.size)})
     return out
 
@@ -446,6 +447,35 @@ def loop_covariance_cost(folder: Path, out: Path, truth: dict, args: argparse.Na
             "load_average_after": os.getloadavg()[0]}
 
 
+def print_realtime(results: dict, args: argparse.Namespace) -> None:
+    """The real-time runs' lines: the run with the median p99, then the spread over the runs."""
+    r, realtime_runs = results["realtime"], results["realtime_runs"]
+    print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames ({args.photometric}, exposure "
+          f"{args.exposure_ms:g} ms), one pass, {results['cores']} cores "
+          f"(NUMBA_NUM_THREADS=1; replay {'preloaded' if results['preload'] else 'decoding PNGs'}); "
+          f"load average {results['load_average_before']:.1f} before, {results['load_average_after']:.1f} after")
+    lat = r["latency"]
+    print(f"real time (30 fps replay, latest-frame-wins): {r['fps']:.1f} fps processed, "
+          f"{r['dropped_frames']} frames dropped, {r['tracked_frames']}/{r['frames']} tracked, "
+          f"CPU {r['cpu_percent_of_one_core']:.0f}% of one core ({r['cpu_ms_per_frame']:.1f} CPU ms per frame)")
+    print(f"  latency over all {lat.get('n')} poses: median {lat.get('median_ms', float('nan')):.1f} ms, p99 "
+          f"{lat.get('p99_ms', float('nan')):.1f} ms; acquisition (first {lat.get('acquisition_frames')} poses) "
+          f"up to {lat.get('acquisition_max_ms', float('nan')):.0f} ms; after it ({lat.get('steady_n', 0)} poses): "
+          f"median {lat.get('steady_median_ms', float('nan')):.1f} ms, "
+          f"p99 {lat.get('steady_p99_ms', float('nan')):.1f} ms, "
+          f"max {lat.get('steady_max_ms', float('nan')):.1f} ms")
+    if len(realtime_runs) > 1:
+        def spread(key: str) -> str:
+            v = [x["latency"].get(key, float("nan")) for x in realtime_runs]
+            return f"{np.median(v):.1f} (runs {', '.join(f'{u:.1f}' for u in v)})"
+        cpu = [x["cpu_ms_per_frame"] for x in realtime_runs]
+        print(f"  medians of {len(realtime_runs)} real-time runs: fps "
+              f"{np.median([x['fps'] for x in realtime_runs]):.1f}; latency median {spread('median_ms')} ms; "
+              f"p99 over all poses {spread('p99_ms')} ms; after acquisition median {spread('steady_median_ms')}, "
+              f"p95 {spread('steady_p95_ms')}, p99 {spread('steady_p99_ms')} ms; first pose {spread('first_ms')} ms; "
+              f"CPU ms per frame {np.median(cpu):.1f} (runs {', '.join(f'{u:.1f}' for u in cpu)})")
+
+
 def summarise(run: dict, truth: dict) -> dict:
     """The figures of one run: rate, CPU, latency, counters and pose errors."""
     st = run["stats"]
@@ -481,6 +511,8 @@ def main() -> int:
                     help="also on N frames: the corner covariance's cost (search, tracking, pose) and the pose "
                          "weighted vs unweighted on the same detections")
     ap.add_argument("--offline-only", action="store_true", help="only the --offline part (no loop runs)")
+    ap.add_argument("--realtime-only", action="store_true",
+                    help="only the real-time runs (no as-fast-as-possible runs, no detection timing): for A/B pairs")
     ap.add_argument("--covariance-cost", type=int, default=0, metavar="K",
                     help="also K pairs of as-fast-as-possible tracked loop runs, one with the corner covariance "
                          "timed and one with it replaced by a constant (alternating): its share of the loop")
@@ -525,6 +557,12 @@ def main() -> int:
     results["realtime_runs"] = realtime_runs
     by_p99 = sorted(realtime_runs, key=lambda x: x["latency"].get("p99_ms", 1e9))
     results["realtime"] = by_p99[(len(by_p99) - 1) // 2]          # the run with the median p99 is shown
+    if args.realtime_only:
+        results["load_average_after"] = os.getloadavg()[0]
+        print_realtime(results, args)
+        if args.json:
+            Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+        return 0
     for key, (realtime, tracking) in {"fast": (False, True), "fast_search": (False, False)}.items():
         results[key] = summarise(run_loop(folder, out, realtime, args.endpoint, tracking, not args.decode,
                                           args.covariance_scale), truth)
@@ -532,28 +570,7 @@ def main() -> int:
     results["load_average_after"] = os.getloadavg()[0]
 
     r, f, s, d = results["realtime"], results["fast"], results["fast_search"], results["detection"]
-    print(f"\nlive loop on {results['frames']} rendered 1280x800 stereo frames ({args.photometric}, exposure "
-          f"{args.exposure_ms:g} ms), one pass, {results['cores']} cores "
-          f"(NUMBA_NUM_THREADS=1; replay {'preloaded' if results['preload'] else 'decoding PNGs'}); "
-          f"load average {results['load_average_before']:.1f} before, {results['load_average_after']:.1f} after")
-    lat = r["latency"]
-    print(f"real time (30 fps replay, latest-frame-wins): {r['fps']:.1f} fps processed, "
-          f"{r['dropped_frames']} frames dropped, {r['tracked_frames']}/{r['frames']} tracked, "
-          f"CPU {r['cpu_percent_of_one_core']:.0f}% of one core ({r['cpu_ms_per_frame']:.1f} CPU ms per frame)")
-    print(f"  latency over all {lat.get('n')} poses: median {lat.get('median_ms', float('nan')):.1f} ms, p99 "
-          f"{lat.get('p99_ms', float('nan')):.1f} ms; acquisition (first {lat.get('acquisition_frames')} poses) "
-          f"up to {lat.get('acquisition_max_ms', float('nan')):.0f} ms; after it ({lat.get('steady_n', 0)} poses): "
-          f"median {lat.get('steady_median_ms', float('nan')):.1f} ms, "
-          f"p99 {lat.get('steady_p99_ms', float('nan')):.1f} ms, "
-          f"max {lat.get('steady_max_ms', float('nan')):.1f} ms")
-    if len(realtime_runs) > 1:
-        def spread(key: str) -> str:
-            v = [x["latency"].get(key, float("nan")) for x in realtime_runs]
-            return f"{np.median(v):.1f} (runs {', '.join(f'{u:.1f}' for u in v)})"
-        print(f"  medians of {len(realtime_runs)} real-time runs: fps "
-              f"{np.median([x['fps'] for x in realtime_runs]):.1f}; latency median {spread('median_ms')} ms; "
-              f"p99 over all poses {spread('p99_ms')} ms; p99 after acquisition {spread('steady_p99_ms')} ms; "
-              f"first pose {spread('first_ms')} ms")
+    print_realtime(results, args)
     for name, x in (("as fast as possible", f), ("same, tracking off", s)):
         print(f"{name}: {x['fps']:.1f} fps sustained over {x['frames']} frames ({x['tracked_frames']} tracked), "
               f"CPU {x['cpu_percent_of_one_core']:.0f}% of one core ({x['cpu_ms_per_frame']:.1f} CPU ms per frame)")
