@@ -271,12 +271,13 @@ def _theta_poly(theta: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return theta * poly, dpoly
 
 
-def project(p_cam: np.ndarray, camera: CameraModel, get_gradients: bool = False):
+def project(p_cam: np.ndarray, camera: CameraModel, get_gradients: bool = False, intrinsics_gradient: bool = True):
     """Pixels q (..., 2) of camera-frame points p_cam (..., 3) (any unit; only directions matter).
 
     With ``get_gradients`` returns (q, dq_dp (..., 2, 3), dq_dintrinsics (..., 2, 4 + n_params)), the
-    intrinsics being ``camera.intrinsics``. Pinhole lenses (radtan, rational) give NaN for points with
-    z <= 0; the fisheye model projects every direction except straight backwards.
+    intrinsics being ``camera.intrinsics``; dq_dintrinsics is None when ``intrinsics_gradient`` is False
+    (a pose solver, which holds the intrinsics fixed). Pinhole lenses (radtan, rational) give NaN for points
+    with z <= 0; the fisheye model projects every direction except straight backwards.
     """
     p = np.asarray(p_cam, dtype=np.float64)
     X, Y, Z = p[..., 0], p[..., 1], p[..., 2]
@@ -328,8 +329,11 @@ def project(p_cam: np.ndarray, camera: CameraModel, get_gradients: bool = False)
         jx = np.stack([zi, np.zeros_like(zi), -x * zi], axis=-1)
         jy = np.stack([np.zeros_like(zi), zi, -y * zi], axis=-1)
         jd = np.stack([a[..., None] * jx + b[..., None] * jy, c[..., None] * jx + e[..., None] * jy], axis=-2)
-        dparams = _radtan_param_jacobian(x, y, d)
     dq_dp = jd * f[:, None]
+    if not intrinsics_gradient:
+        return q, dq_dp, None
+    if camera.lens != "fisheye":
+        dparams = _radtan_param_jacobian(x, y, d)
     dq_di = np.zeros(X.shape + (2, 4 + len(d)))
     dq_di[..., 0, 0] = xd
     dq_di[..., 1, 1] = yd

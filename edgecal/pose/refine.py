@@ -45,7 +45,7 @@ def _residuals_and_jacobian(x: np.ndarray, views: list[CameraView]) -> tuple[np.
         X = v.object_points_m
         p_rig = X @ R.T + x[3:]
         p_cam = p_rig @ v.R_cam_rig.T + v.t_cam_rig_m
-        q, dq_dp, _ = project(p_cam, v.camera, get_gradients=True)
+        q, dq_dp, _ = project(p_cam, v.camera, get_gradients=True, intrinsics_gradient=False)
         res.append((q - v.image_points_px).ravel())
         dq_drig = dq_dp @ v.R_cam_rig                                   # (N, 2, 3)
         dp_drvec = np.einsum("kij,nj->nik", dR, X)                      # d(R X)/d rvec: (N, 3, 3)
