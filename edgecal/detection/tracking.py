@@ -72,6 +72,11 @@ def board_motion(predicted: np.ndarray, found: np.ndarray, max_residual_px: floa
     return M, residual <= bound
 
 
+# Row and column offsets of a 3x3 neighbourhood, row by row (square_colours_match).
+_NINE_DY = np.repeat(np.arange(-1, 2), 3)
+_NINE_DX = np.tile(np.arange(-1, 2), 3)
+
+
 def _dense_grid(ids: np.ndarray, xy: np.ndarray, lo: np.ndarray, cols: int, rows: int) -> np.ndarray:
     """(rows, cols, 2) pixel array holding ``xy`` at (col, row) = ids - lo, NaN where no corner is."""
     grid = np.full((rows, cols, 2), np.nan)
@@ -102,7 +107,13 @@ def square_colours_match(ids: np.ndarray, xy: np.ndarray, smooth: np.ndarray, mi
     inside = (xi >= 1) & (xi < w - 1) & (yi >= 1) & (yi < h - 1)
     rows, cols, xi, yi = rows[inside], cols[inside], xi[inside], yi[inside]
     value = np.full(centres.shape[:2], np.nan)
-    value[rows, cols] = sum(smooth[yi + dy, xi + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)) / 9.0
+    # The 3x3 mean around each centre: one gather of the nine samples, summed in the order (dy, dx) row by row
+    # (the same float32 sums as nine separate gathers, at a ninth of the indexing).
+    nine = smooth[yi[:, None] + _NINE_DY, xi[:, None] + _NINE_DX]
+    total = nine[:, 0].copy()
+    for k in range(1, 9):
+        total += nine[:, k]
+    value[rows, cols] = total / 9.0
     # Light minus dark for every pair of neighbouring squares, dark being the one whose ids say black.
     black = (np.add.outer(np.arange(value.shape[0]) + lo[1], np.arange(value.shape[1]) + lo[0]) % 2) == 0
     sign = np.where(black, -1.0, 1.0)

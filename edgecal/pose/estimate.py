@@ -46,10 +46,10 @@ def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[
     """(board, col, row) -> pixel (2,) for every usable detected corner of a board the target knows."""
     table: dict[tuple[str, int, int], np.ndarray] = {}
     for det in unambiguous_detections(detections, target):
-        for (c, r), px, ok in zip(np.asarray(det.ids).reshape(-1, 2), np.asarray(det.corners).reshape(-1, 2),
-                                  det.usable()):
+        px = np.asarray(det.corners, dtype=np.float64).reshape(-1, 2)
+        for (c, r), row, ok in zip(np.asarray(det.ids).reshape(-1, 2).tolist(), px, det.usable().tolist()):
             if ok:
-                table[(det.board, int(c), int(r))] = np.asarray(px, dtype=np.float64)
+                table[(det.board, c, r)] = row
     return table
 
 
@@ -59,9 +59,9 @@ def corner_covariances(detections: Sequence[Detection], target: Target) -> dict[
     for det in unambiguous_detections(detections, target):
         if det.covariance is None:
             continue
-        for (c, r), cov, ok in zip(np.asarray(det.ids).reshape(-1, 2), det.covariance, det.usable()):
+        for (c, r), cov, ok in zip(np.asarray(det.ids).reshape(-1, 2).tolist(), det.covariance, det.usable().tolist()):
             if ok:
-                table[(det.board, int(c), int(r))] = cov
+                table[(det.board, c, r)] = cov
     return table
 
 
