@@ -111,6 +111,23 @@ def test_gradients_match_finite_differences(lens: str) -> None:
         assert np.max(np.abs(num - dq_di[:, :, j])) < 1e-5 * max(1.0, np.max(np.abs(num))), cam.intrinsic_names[j]
 
 
+@pytest.mark.parametrize("lens", list(LENSES))
+def test_leading_dimensions_and_point_gradients_only(lens: str) -> None:
+    """Points shaped (..., 3) project as the same points flattened, and a solver that holds the intrinsics
+    fixed (intrinsics_gradient=False) gets the same pixels and point Jacobian, exactly, and no intrinsics
+    Jacobian."""
+    cam = _camera(lens)
+    p = _points(np.random.default_rng(8), 60, 50.0)
+    q, dq_dp, dq_di = project(p, cam, get_gradients=True)
+    q2, dq_dp2, dq_di2 = project(p.reshape(3, 4, 5, 3), cam, get_gradients=True)
+    assert np.array_equal(q2.reshape(-1, 2), q) and np.array_equal(dq_dp2.reshape(-1, 2, 3), dq_dp)
+    assert np.array_equal(dq_di2.reshape(dq_di.shape), dq_di)
+    q3, dq_dp3, none = project(p, cam, get_gradients=True, intrinsics_gradient=False)
+    assert np.array_equal(q3, q) and np.array_equal(dq_dp3, dq_dp) and none is None
+    rays = unproject(q2, cam)
+    assert rays.shape == (3, 4, 5, 3) and np.array_equal(rays.reshape(-1, 3), unproject(q, cam), equal_nan=True)
+
+
 def test_gradients_on_the_axis() -> None:
     """The fisheye Jacobian has the pinhole limit on the optical axis (no division by zero)."""
     cam = _camera("fisheye")
