@@ -192,9 +192,12 @@ class FramePipeline:
         """The pose from verifying the tracker's predicted corners (left, right) in both images, or None when
         the result is in doubt (then the frame is searched)."""
         left_pred, right_pred = predicted
-        # One thread for both images: verification is ~6 ms of mostly Python per image, and two threads
-        # contending for the GIL (each OpenCV call hands it over and waits to get it back) were slower
-        # than one, with a longer tail. The full search below, mostly in GIL-free kernels, does gain.
+        # One thread for both images: verification is mostly Python, and two threads contend for the GIL
+        # (each OpenCV call hands it over and waits to get it back). Measured again on e4c4de0 (bench/live.py's
+        # hard sequence, load 3-5): per frame in the pipeline, two threads took ~2x the median wall time of
+        # one at Python's default 5 ms switch interval and about the same at 0.5 ms; tracking alone, best of
+        # 7 per frame, 1.03-1.04x the wall of one thread at 5, 0.5 and 0.1 ms, and 1.19x with the right image
+        # in a worker process. The full search below, mostly in GIL-free kernels, does gain.
         left_det = self._track(left, left_pred)
         right_det = self._track(right, right_pred)
         # A board the last frame found that verification lost is searched for (with all the search's checks)
