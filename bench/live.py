@@ -137,7 +137,7 @@ def run_loop(folder: Path, out: Path, realtime: bool, endpoint: str, tracking: b
     msgs = sub.close(drain_s=0.2)
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     return {"messages": msgs, "wall_s": t1 - t0, "cpu_s": cpu, "stats": loop.stats,
-            "timed_frames": loop.stats.frames - first}
+            "timed_frames": loop.stats.frames - first, "load_average": os.getloadavg()[0]}
 
 
 def pose_errors(messages: list[dict], truth: dict) -> dict:
@@ -469,11 +469,13 @@ def print_realtime(results: dict, args: argparse.Namespace) -> None:
             v = [x["latency"].get(key, float("nan")) for x in realtime_runs]
             return f"{np.median(v):.1f} (runs {', '.join(f'{u:.1f}' for u in v)})"
         cpu = [x["cpu_ms_per_frame"] for x in realtime_runs]
+        loads = [x["load_average"] for x in realtime_runs]
         print(f"  medians of {len(realtime_runs)} real-time runs: fps "
               f"{np.median([x['fps'] for x in realtime_runs]):.1f}; latency median {spread('median_ms')} ms; "
               f"p99 over all poses {spread('p99_ms')} ms; after acquisition median {spread('steady_median_ms')}, "
               f"p95 {spread('steady_p95_ms')}, p99 {spread('steady_p99_ms')} ms; first pose {spread('first_ms')} ms; "
-              f"CPU ms per frame {np.median(cpu):.1f} (runs {', '.join(f'{u:.1f}' for u in cpu)})")
+              f"CPU ms per frame {np.median(cpu):.1f} (runs {', '.join(f'{u:.1f}' for u in cpu)}); load average "
+              f"at each run's end {', '.join(f'{u:.1f}' for u in loads)}")
 
 
 def summarise(run: dict, truth: dict) -> dict:
@@ -485,7 +487,8 @@ def summarise(run: dict, truth: dict) -> dict:
             "detection_failures": st.detection_failures,
             "cpu_percent_of_one_core": 100 * run["cpu_s"] / run["wall_s"],
             "cpu_ms_per_frame": 1000 * run["cpu_s"] / max(run["timed_frames"], 1),
-            "latency": latency(run["messages"]), "errors": pose_errors(run["messages"], truth)}
+            "latency": latency(run["messages"]), "errors": pose_errors(run["messages"], truth),
+            "load_average": run["load_average"]}
 
 
 def main() -> int:
