@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from edgecal.detection.corner_covariance import LIGHT_SHIFT_PX2, SHARED_FRACTION
 from edgecal.detection.types import Detection
 from edgecal.pose import PoseSettings, estimate_pose
-from edgecal.pose.estimate import board_shared_error
+from edgecal.pose.estimate import shared_error
 
 from .pose_fixtures import render_detections, robot_target, rotation_error_rad, stereo_cams, true_pose
 
@@ -23,14 +24,16 @@ def _random_covariances(rng: np.random.Generator, n: int, sigma_px: float) -> np
 
 def _with_model_errors(dets: list[Detection], covs: list[np.ndarray], rng: np.random.Generator) -> list[Detection]:
     """Detections whose corners carry ``covs`` and errors drawn from the pose's error model: independent
-    corner errors from those covariances plus the board's shared affine error (board_shared_error)."""
+    corner errors from those covariances plus the board's shared affine error (shared_error, with the
+    shared part of the detector's saddle fit; no common offset: these detections have no light gradient)."""
     out = []
     for det, cov in zip(dets, covs):
-        basis, var = board_shared_error(det.corners, cov, np.zeros(len(cov), dtype=np.int64))
-        shared = basis @ (rng.standard_normal(6) * np.sqrt(var[0]))
+        shared = SHARED_FRACTION["saddle"] ** 2 * 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+        basis, var = shared_error(det.corners, shared, np.zeros(len(cov), dtype=np.int64), np.zeros((len(cov), 2)))
+        common = basis @ (rng.standard_normal(len(var)) * np.sqrt(var))
         own = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.standard_normal((len(cov), 2)))
-        out.append(Detection(det.board, det.corners + own + shared, det.ids, det.quality, det.grid,
-                             covariance=cov, unusable=[""] * len(cov)))
+        out.append(Detection(det.board, det.corners + own + common, det.ids, det.quality, det.grid,
+                             covariance=cov, unusable=[""] * len(cov), shared_px2=shared))
     return out
 
 
@@ -116,3 +119,28 @@ def test_a_start_behind_the_camera_gives_an_invalid_pose_not_an_exception() -> N
     pose = _estimate(corner_table(left, target), corner_table(right, target), target, cams, PoseSettings(),
                      start_pose=behind)
     assert not pose.valid and "behind a camera" in pose.reason
+
+
+def test_a_light_gradient_widens_the_pose_sideways() -> None:
+    """Corners that report a light gradient share an offset along it (LIGHT_SHIFT_PX2 x |gradient|, the same
+    in both cameras): the pose's sigma grows across the view by about that offset's reach, not in depth,
+    and the pose itself does not move (only its covariance models the offset)."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left0, right0 = render_detections(target, cams, R, t)
+    gradient = np.array([2e-3, 0.0])                 # 1/px: a 40 % light ramp across a 400 px half-width
+
+    def with_light(dets: list[Detection], g: np.ndarray) -> list[Detection]:
+        n = [len(d.corners) for d in dets]
+        return [Detection(d.board, d.corners, d.ids, d.quality, d.grid, covariance=np.broadcast_to(
+                    0.03 ** 2 * np.eye(2), (k, 2, 2)).copy(), unusable=[""] * k, shared_px2=np.full(k, 0.003 ** 2),
+                    light_gradient=np.tile(g, (k, 1))) for d, k in zip(dets, n)]
+
+    lit = estimate_pose(with_light(left0, gradient), with_light(right0, gradient), target, cams)
+    dark = estimate_pose(with_light(left0, 0 * gradient), with_light(right0, 0 * gradient), target, cams)
+    assert lit.valid and dark.valid
+    assert np.allclose(lit.t_m, dark.t_m) and np.allclose(lit.R, dark.R)
+    added = np.diag(lit.covariance - dark.covariance)[:3]
+    offset_m = LIGHT_SHIFT_PX2 * 2e-3 * t[2] / cams.left.fx     # the common offset at the robot's range
+    assert added[0] == pytest.approx(offset_m ** 2, rel=0.5)
+    assert added[2] < 0.2 * added[0] and abs(added[1]) < 0.2 * added[0]

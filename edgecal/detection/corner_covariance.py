@@ -42,6 +42,7 @@ corners.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -76,16 +77,39 @@ REASON_DISAGREE = "saddle fit and cornerSubPix disagree by more than 1 px (not o
 # off the pixel axes are good to 0.002-0.004 px per axis, what the noise term (quantisation alone) says:
 # the floor is what is left, at most 0.002 px. Edges within 6 deg of a pixel axis give 0.010-0.014 px at
 # every blur, 6-9 deg 0.009, 9-12 deg 0.004 (with the faint noise of bench/corner_noise.py's clean renders,
-# 0-1 grey levels, which dithers it: 0.008 px up to 9 deg, the value taken, as every camera has some
-# noise): pixel locking, a bias that follows the edge's sub-pixel
+# 0-1 grey levels, which dithers it: 0.008 px up to 9 deg; 0.007 is taken, the value that makes those
+# clean renders consistent, normalised error 1.75, with the noise estimate as it is): pixel locking, a bias
+# that follows the edge's sub-pixel
 # phase, which an edge slanted across the pixel grid averages out along its length. A Gaussian average
 # over L along the edge damps it by exp(-2 pi^2 (L tan a)^2); L = PIXEL_LOCK_LENGTH_PX is read off that
 # fall-off (the fit window's own RMS width, 2.5 px, would damp it by 9 deg already, which the errors do
 # not show). A real lens and sensor add more; calibration's noise floor (calibration/refine.py) measures it.
 SADDLE_FLOOR_PX = 0.002
-PIXEL_LOCK_PX = 0.008
+PIXEL_LOCK_PX = 0.007
 PROBE_NOISE_SHARE = 0.0  # see _saddle_covariance
 PIXEL_LOCK_LENGTH_PX = 1.3
+# The shift a light field puts on all of a board's corners alike, per unit gradient of log light (px^2; the
+# shift is about LIGHT_SHIFT_PX2 x grad log L, towards the light). The light term above, H^-1 m, alternates
+# in sign from corner to corner (the saddle's Hessian does) and so misses it: the blur after the light (lens,
+# the detector's smoothing) moves every edge towards the light by about sigma_blur^2 x grad log L whatever
+# its polarity, and the fit's window adds its own second moment. Measured on bench/corner_noise.py's planar
+# renders (the mean error of each board's corners against its light gradient): 6.7 px^2 (normal), 10.2
+# (uneven light), 9.9 (foreshortened), correlation 0.71-0.96; 0.1-5 on ../shared's renders, lit after the
+# blur. 14 is taken: it also covers the part of the light's error that H^-1 m leaves per corner (uneven
+# light: normalised error 3.3 with 10, 2.9 with 14; a gain on H^-1 m instead cost planar calibrations 16 %
+# in focal length, as it moves the weights between a board's corners). Each corner's covariance holds it
+# (isotropic); the pose models it as one offset of all corners along the gradient
+# (edgecal.pose.estimate.shared_error).
+LIGHT_SHIFT_PX2 = 14.0
+#
+# The share of a corner's error (sigma) that all corners of its board have in common, per refiner: the light
+# field, blur and perspective over a board bias its corners alike, which does not average out over them as
+# independent errors do, and a fit's residual cannot see a bias the pose absorbs. Measured on bench/live.py's
+# rendered robot sequences (the mean error of each board's corners in each image against the truth): the
+# saddle fit's boards 0.03 px against corners of 0.13 px on the hard sequence, cornerSubPix's 0.11 against
+# 0.23 px from the same images (its window's weights make it the more sensitive to an asymmetric
+# neighbourhood); fitted on the pose's NEES and per-axis error over the four sequences.
+SHARED_FRACTION = {"saddle": 0.1, "cornersubpix": 0.2}
 #
 # cornerSubPix's model error: a floor (pixel sampling and locking, quantisation, the renderer's and a lens'
 # small departures from an ideal X-junction) and the gain on the window's asymmetry
@@ -95,11 +119,14 @@ PIXEL_LOCK_LENGTH_PX = 1.3
 # renders of clean, normal, hard, uneven-light and strongly foreshortened planar views (then the gain
 # lowered from 1.35 so that the uneven-light set, whose error is a bias along one direction, is not
 # over-covered), with the noise term taken as it is: its Monte-Carlo check (noise-only repeats of one
-# render) needs no factor, normalised error 1.9-2.2 (2.8 at 2 px blur).
-CORNERSUBPIX_FLOOR_PX = 0.01
+# render) needs no factor, normalised error 1.9-2.2 (2.8 at 2 px blur). The floor refitted (0.010 ->
+# 0.012) with the noise estimate of covariance_noise_sigma: clean tracked renders 3.05 -> 2.3.
+CORNERSUBPIX_FLOOR_PX = 0.012
 ASYMMETRY_GAIN = 1.2
-# pyrDown's 5x5 binomial passes 0.273 of white noise (as in the detector).
-_PYRDOWN_NOISE_GAIN = 0.273
+# The half-resolution noise estimate over the full-resolution one on white noise, at most (edgecal.synth
+# renders without JPEG, 271 views of five conditions: median 1.19, p90 1.39; beyond it only views of
+# under 0.3 grey levels, where quantisation dominates; JPEG quality 60-95: 1.2-7).
+WHITE_NOISE_HALF_RATIO = 1.4
 # Largest condition number of a usable covariance: beyond it the corner is a line, not a point.
 MAX_CONDITION = 1e6
 # Where the light field is read: at +-SQUARE_PROBE x (a +- b) from the corner (a, b its steps to the next
@@ -118,22 +145,22 @@ def covariance_noise_sigma(grey: np.ndarray, half_noise: float | None = None) ->
 
     The detector's estimate (candidates.estimate_noise_sigma) looks at pixel-to-pixel differences, which
     JPEG compression and demosaicing remove while the noise at the scale of a corner window stays; the
-    same estimate at half resolution sees that, so the larger of the two is taken. Quantisation (1/12
-    grey level^2) is added: a noise-free 8-bit image still has it. ``half_noise``: that half-resolution
-    estimate (estimate_noise_sigma of cv2.pyrDown(grey)) when the caller already has it (the detector's
-    pyramid does): a second pyrDown of a 1280x800 image would cost more than the covariances themselves.
+    half-resolution estimate (candidates.half_resolution_noise_sigma) sees that noise, but image structure
+    (edges in its 9x9 footprint) also inflates it, by up to WHITE_NOISE_HALF_RATIO on white noise. So what
+    it sees beyond that ratio is added: sigma^2 = full^2 + max(0, half^2 - (ratio x full)^2): white noise
+    keeps the full-resolution value, compressed noise gets about the half-resolution one. Both are measured
+    on the 8-bit image, so they hold its quantisation; quantisation alone (1/12 grey level^2) is the floor, as
+    a noise-free 8-bit image still has it (added on top, it made clean renders' covariances 1.2x too wide
+    in sigma). ``half_noise``:
+    half_resolution_noise_sigma of ``grey`` when the caller has it.
     """
-    import cv2
-
-    from edgecal.detection.candidates import estimate_noise_sigma
+    from edgecal.detection.candidates import estimate_noise_sigma, half_resolution_noise_sigma
 
     # Every 6th pixel at full resolution: tens of thousands of samples, a few times cheaper.
-    sigma = estimate_noise_sigma(grey, stride=6)
-    if half_noise is None and min(grey.shape) >= 16:
-        half_noise = estimate_noise_sigma(cv2.pyrDown(grey))
-    if half_noise is not None:
-        sigma = max(sigma, half_noise / _PYRDOWN_NOISE_GAIN)
-    return float(np.sqrt(sigma * sigma + 1.0 / 12.0))
+    full = estimate_noise_sigma(grey, stride=6)
+    half = half_resolution_noise_sigma(grey) if half_noise is None else half_noise
+    excess = max(0.0, half * half - (WHITE_NOISE_HALF_RATIO * full) ** 2)
+    return float(np.sqrt(max(full * full + excess, 1.0 / 12.0)))
 
 
 @njit(cache=True, nogil=True)
@@ -523,11 +550,27 @@ def noise_kernel(smoothing_sigma: float) -> np.ndarray:
     return cv2.getGaussianKernel(ksize, smoothing_sigma, cv2.CV_64F).ravel()
 
 
+class CornerCovariances(NamedTuple):
+    """What corner_covariance says of N corners.
+
+    covariance: (N, 2, 2) px^2, OpenCV pixel axes, NaN for an unusable corner. shared_px2: (N,) the part of
+    it (px^2 per axis) that the corners of its board share (SHARED_FRACTION), NaN for an unusable corner.
+    unusable: (N,) reasons, "" for a usable corner. light_gradient: (N, 2)
+    the gradient of log light (1/px, image axes) at each corner, its board's mean reading (saddle fit with
+    ``boards``; the corner's own reading without), zeros where none was read (cornerSubPix).
+    """
+
+    covariance: np.ndarray
+    shared_px2: np.ndarray
+    unusable: list[str]
+    light_gradient: np.ndarray
+
+
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
                       spacing: np.ndarray | None = None, noise_sigma: float | None = None, *, refiner: str,
-                      steps: np.ndarray | None = None, boards: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, list[str]]:
-    """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, and why a corner is unusable.
+                      steps: np.ndarray | None = None, boards: np.ndarray | None = None) -> CornerCovariances:
+    """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, the part its board's corners share,
+    and why a corner is unusable (CornerCovariances).
 
     grey: (H, W) uint8, the image; smooth: the detector's smoothed float32 image of it (candidates.smooth_image
     with ``smoothing_sigma``) on which the corners were refined; corners: (N, 2) pixels; spacing: (N,)
@@ -538,15 +581,14 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     position and gets its covariance. steps: (N, 2, 2) the board's local steps to the next column and row
     (grid_steps), for the saddle fit's model error (default: read off the fit); boards: (N,) int, which
     board each corner is on: the light field, smooth over a board, is averaged over its corners (default:
-    each corner alone). Returns (N, 2, 2)
-    covariances, NaN for an unusable corner, and (N,) reasons ("" for a usable one).
+    each corner alone).
     """
     if refiner not in REFINERS:
         raise ValueError(f"unknown refiner {refiner!r} ({', '.join(REFINERS)})")
     corners = np.ascontiguousarray(np.asarray(corners, dtype=np.float64).reshape(-1, 2))
     n = len(corners)
     if n == 0:
-        return np.zeros((0, 2, 2)), []
+        return CornerCovariances(np.zeros((0, 2, 2)), np.zeros(0), [], np.zeros((0, 2)))
     if spacing is None:
         spacing = nearest_spacing(corners)
     half = subpixel_window(spacing)
@@ -558,6 +600,7 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     tr = st[:, W_AXX] + st[:, W_AYY]
     ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)
     cov = _cornersubpix_covariance(st, half, noise2, np.where(ok, a, 1.0))
+    shared_fraction = np.full(n, SHARED_FRACTION["cornersubpix"])
     if refiner == "saddle":
         fit, fit_half, blur_half, blur = saddle_fit_setup(spacing)
         if steps is None:
@@ -569,10 +612,20 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         if boards is not None:
             sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
         cov[fitted] = _saddle_covariance(sd[fitted], noise2)
+        shared_fraction[fitted] = SHARED_FRACTION["saddle"]
+        read = fitted & (np.abs(sd[:, S_LEVEL]) > 1.0)
+        light = np.zeros((n, 2))
+        light[read] = sd[read][:, [S_LIGHTX, S_LIGHTY]] / sd[read, S_LEVEL, None]
+        # the shift all of a board's corners share along the light gradient (LIGHT_SHIFT_PX2), isotropic: what
+        # a corner's error adds to it has no preferred direction (along the gradient, the covariances were
+        # 1.5x too elongated for the errors under uneven light)
+        shift2 = LIGHT_SHIFT_PX2 ** 2 * np.sum(light[read] ** 2, axis=1)
+        cov[read] += 0.5 * shift2[:, None, None] * np.eye(2)
         ok |= fitted
         disagree = fitted & (np.hypot(sd[:, S_STEPX], sd[:, S_STEPY]) > MAX_SADDLE_STEP_PX)
     else:
         disagree = np.zeros(n, dtype=bool)
+        light = np.zeros((n, 2))
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     ev_min = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) - np.hypot(0.5 * (cov[:, 0, 0] - cov[:, 1, 1]), cov[:, 0, 1])
     finite = np.isfinite(cov).all(axis=(1, 2))
@@ -580,7 +633,9 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     reasons = np.select([~inside, tr <= 0, ~(ok & finite & (ev_min > 0)), disagree],
                         [REASON_BORDER, REASON_FLAT, REASON_DEGENERATE, REASON_DISAGREE], default="")
     cov[reasons != ""] = np.nan
-    return cov, reasons.tolist()
+    shared = shared_fraction ** 2 * 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+    light[reasons != ""] = 0.0
+    return CornerCovariances(cov, shared, reasons.tolist(), light)
 
 
 def _cornersubpix_covariance(st: np.ndarray, half: np.ndarray, noise2: float, det: np.ndarray) -> np.ndarray:

@@ -168,16 +168,18 @@ def add_covariances(detections: list[Detection], level: Level, p: DetectorParams
         return
     xy = np.concatenate([d.corners for d in detections]) - level.origin
     spacing = np.concatenate([nearest_spacing(d.corners) for d in detections])
-    noise = covariance_noise_sigma(level.image, level.half_noise)
+    noise = covariance_noise_sigma(level.image)
     steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
     boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
-    cov, reasons = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
-                                     refiner=p.subpixel_refiner, steps=steps, boards=boards)
+    cc = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
+                           refiner=p.subpixel_refiner, steps=steps, boards=boards)
     start = 0
     for d in detections:
-        d.covariance = cov[start:start + len(d.corners)]
-        d.unusable = reasons[start:start + len(d.corners)]
-        start += len(d.corners)
+        end = start + len(d.corners)
+        d.covariance, d.shared_px2, d.unusable = cc.covariance[start:end], cc.shared_px2[start:end], \
+            cc.unusable[start:end]
+        d.light_gradient = cc.light_gradient[start:end]
+        start = end
 
 
 def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, Level]:

@@ -27,7 +27,7 @@ import numpy as np
 
 from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
 from edgecal.detection.completion import verify_predictions
-from edgecal.detection.corner_covariance import corner_covariance
+from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma
 from edgecal.detection.detector import WINDOW_MARGIN_PX, detect
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import probe_radii
@@ -269,13 +269,14 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
                                (board.cols, board.rows), complete=len(ids) == board.n_corners))
         windows.append(sp[order])
-    # The corners' covariances, all boards in one call, on the crop they were refined on.
+    # The corners' covariances, all boards in one call, on the crop they were refined on; the noise from the
+    # whole image: in a crop the board fills, its edges inflate the half-resolution estimate up to 2x.
     if found:
-        cov, reasons = corner_covariance(crop, smooth, sigma, np.concatenate([d.corners for d in found]) - offset,
-                                         np.concatenate(windows), refiner="cornersubpix")
+        cc = corner_covariance(crop, smooth, sigma, np.concatenate([d.corners for d in found]) - offset,
+                               np.concatenate(windows), covariance_noise_sigma(grey), refiner="cornersubpix")
         bounds = np.cumsum([0] + [len(d.corners) for d in found])
         for d, i, j in zip(found, bounds[:-1], bounds[1:]):
-            d.covariance, d.unusable = cov[i:j], reasons[i:j]
+            d.covariance, d.shared_px2, d.unusable = cc.covariance[i:j], cc.shared_px2[i:j], cc.unusable[i:j]
     return found
 
 

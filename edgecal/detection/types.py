@@ -23,6 +23,10 @@ class Detection:
              corner is unusable; None when not computed (a Detection built by hand).
     unusable: (N,) reasons, "" for a usable corner (a covariance that is not positive definite: a flat,
              saturated or degenerate window, a window leaving the image).
+    shared_px2: (N,) float64, the part of each corner's covariance (px^2 per axis) that the corners of its
+             board share (CornerCovariances); NaN where unusable, None when not computed.
+    light_gradient: (N, 2) float64, the gradient of log light (1/px) over each corner's board, read off its
+             squares (CornerCovariances); zeros where it was not read, None when not computed.
     """
 
     board: str
@@ -34,6 +38,8 @@ class Detection:
     copy: int = 0
     covariance: np.ndarray | None = None
     unusable: list[str] = field(default_factory=list)
+    shared_px2: np.ndarray | None = None
+    light_gradient: np.ndarray | None = None
 
     def usable(self) -> np.ndarray:
         """(N,) bool: corners with a positive-definite covariance (all when none was computed)."""

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 from edgecal.camera import StereoRig, undistort_points
+from edgecal.detection.corner_covariance import LIGHT_SHIFT_PX2
 from edgecal.detection.types import Detection
 from edgecal.geometry import triangulate_pixels
 from edgecal.pose.predict import MIN_FACING_COS, camera_from_rig, facing_cos
@@ -16,17 +17,17 @@ from edgecal.pose.rigid import fit_rigid, is_degenerate
 from edgecal.pose.types import Pose, PoseSettings
 from edgecal.targets import Target
 
-# The error the corners of one board in one camera share (estimated from edgecal.synth robot sequences;
-# see the README, "Live pose"): the light field, the blur and the perspective over a board bias its corners
-# alike, which does not average out over them as independent errors do, and a fit's residual cannot see a
-# bias the pose absorbs. Modelled as an affine error of the board's corners in the image - an offset and a
-# linear map about their centroid, in px at the corners' RMS distance from it - with sigma^2 per parameter
-# = SHARED_FLOOR_PX^2 + (SHARED_FRACTION x RMS corner sigma of the board)^2. Measured on renders (weighted
-# affine fits to the corners' true errors, less what independent errors explain): offset / linear part
-# 0.04 / 0.06 px on the hard sequence (0.2 / 0.3 of its corners' sigma), 0.010 / 0.010 px under a strong
-# light gradient, none measurable on clean renders.
-SHARED_FLOOR_PX = 0.0
-SHARED_FRACTION = 0.15
+# The errors corners share, which do not average out over them as independent errors do and which a fit's
+# residual cannot see (a bias the pose absorbs; see the README, "Live pose"):
+# - each board's in each camera (corner_covariance.SHARED_FRACTION: the light field, blur and perspective over
+#   a board bias its corners alike), modelled as an affine error of its corners - an offset and a linear map
+#   about their centroid, in px at the corners' RMS distance from it - with the variance its corners'
+#   shared_px2 say per parameter;
+# - an offset common to every corner of the frame, in both cameras, along the light field's gradient: a light
+#   field lights the boards from one side and both cameras see it alike, so the shift it puts on all corners
+#   (corner_covariance.LIGHT_SHIFT_PX2 x grad log L) moves the whole robot sideways. Without it the searched
+#   pose of the robot sequence with a strong light gradient (bench/live.py --scene other) had x and y errors
+#   of 1.6 and 1.3 sigma and mean NEES 21.8.
 
 
 def unambiguous_detections(detections: Sequence[Detection], target: Target) -> list[Detection]:
@@ -53,15 +54,23 @@ def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[
     return table
 
 
-def corner_covariances(detections: Sequence[Detection], target: Target) -> dict[tuple[str, int, int], np.ndarray]:
-    """(board, col, row) -> the detector's 2x2 covariance (px^2) of every usable corner that has one."""
-    table: dict[tuple[str, int, int], np.ndarray] = {}
+def corner_covariances(detections: Sequence[Detection], target: Target
+                       ) -> dict[tuple[str, int, int], tuple[np.ndarray, float, np.ndarray]]:
+    """(board, col, row) -> (the detector's 2x2 covariance (px^2), its board's shared part (px^2 per axis),
+    the light gradient there (2,), 1/px; zero when the detection has none) of every usable corner that has
+    a covariance."""
+    table: dict[tuple[str, int, int], tuple[np.ndarray, float, np.ndarray]] = {}
     for det in unambiguous_detections(detections, target):
         if det.covariance is None:
             continue
-        for (c, r), cov, ok in zip(np.asarray(det.ids).reshape(-1, 2).tolist(), det.covariance, det.usable().tolist()):
+        n = len(det.corners)
+        shared = [0.0] * n if det.shared_px2 is None else det.shared_px2.tolist()
+        light = np.zeros((n, 2)) if det.light_gradient is None else det.light_gradient
+        # ids and flags as Python lists: one conversion, not one per corner
+        for (c, r), cov, shared_px2, g, ok in zip(np.asarray(det.ids).reshape(-1, 2).tolist(), det.covariance,
+                                                  shared, light, det.usable().tolist()):
             if ok:
-                table[(det.board, c, r)] = cov
+                table[(det.board, c, r)] = (cov, shared_px2, g)
     return table
 
 
@@ -79,55 +88,73 @@ def robot_points_m(target: Target, keys: Sequence[tuple[str, int, int]]) -> np.n
     return out
 
 
-def _covariances(keys: list, covs: dict, noise_px: float) -> np.ndarray:
-    """(N, 2, 2) covariances of the corners ``keys``: the detector's, else ``noise_px`` on both axes."""
-    fallback = np.eye(2) * noise_px ** 2
-    return np.array([covs.get(k, fallback) for k in keys]).reshape(-1, 2, 2)
+def _covariances(keys: list, covs: dict, noise_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, 2, 2) covariances, (N,) shared parts and (N, 2) light gradients of the corners ``keys``: the
+    detector's, else ``noise_px`` on both axes and no shared part or light gradient."""
+    fallback = (np.eye(2) * noise_px ** 2, 0.0, np.zeros(2))
+    rows = [covs.get(k, fallback) for k in keys]
+    return (np.array([r[0] for r in rows]).reshape(-1, 2, 2), np.array([r[1] for r in rows], dtype=np.float64),
+            np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 2))
 
 
 def _views(rig: StereoRig, target: Target, left: dict, right: dict, covs: tuple[dict, dict] = ({}, {}),
            noise_px: float = 0.1) -> tuple[CameraView, CameraView]:
     kl, kr = sorted(left), sorted(right)
     vl = CameraView(rig.left, np.eye(3), np.zeros(3), robot_points_m(target, kl),
-                    np.array([left[k] for k in kl]).reshape(-1, 2), _covariances(kl, covs[0], noise_px))
+                    np.array([left[k] for k in kl]).reshape(-1, 2), *_covariances(kl, covs[0], noise_px))
     vr = CameraView(rig.right, rig.R_right_left, rig.t_right_left_m, robot_points_m(target, kr),
-                    np.array([right[k] for k in kr]).reshape(-1, 2), _covariances(kr, covs[1], noise_px))
+                    np.array([right[k] for k in kr]).reshape(-1, 2), *_covariances(kr, covs[1], noise_px))
     return vl, vr
 
 
-def board_shared_error(xy: np.ndarray, cov_px2: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The shared affine error of each group's corners (SHARED_FLOOR_PX, SHARED_FRACTION): its basis
-    (M, 2, 6) - offset x, y, then the linear map's four entries times the corner's offset from its group's
-    centroid over their RMS distance - and (G, 6) variances (px^2). xy (M, 2) pixels, cov_px2 (M, 2, 2) the
-    corners' covariances, groups (M,) their group."""
-    n = np.maximum(np.bincount(groups), 1)
-    sums = np.stack([np.bincount(groups, weights=xy[:, 0]), np.bincount(groups, weights=xy[:, 1])], axis=1)
-    centroid = sums / n[:, None]
-    d = xy - centroid[groups]
-    radius = np.sqrt(np.bincount(groups, weights=np.sum(d * d, axis=1)) / n)
+def shared_error(xy: np.ndarray, shared_px2: np.ndarray, groups: np.ndarray, light: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The errors corners share (LIGHT_SHIFT_PX2, corner_covariance.SHARED_FRACTION) as K = 2 + 6 G parameters
+    over all M corners: their basis (M, 2, K) - the common offset along the eigenvectors of its covariance,
+    then per group (a board in one camera) its affine error: offset x, y, the linear map's four entries
+    times the corner's offset from the group's centroid over their RMS distance - and their variances (K,)
+    px^2. xy (M, 2) pixels, shared_px2 (M,) the corners' shared parts, groups (M,) 0..G-1, light (M, 2)
+    the gradient of log light at each corner (1/px)."""
+    m = len(xy)
+    n_groups = int(groups.max()) + 1 if m else 0
+    n = np.maximum(np.bincount(groups, minlength=n_groups), 1)
+    sums = np.stack([np.bincount(groups, weights=xy[:, 0], minlength=n_groups),
+                     np.bincount(groups, weights=xy[:, 1], minlength=n_groups)], axis=1)
+    d = xy - (sums / n[:, None])[groups]
+    radius = np.sqrt(np.bincount(groups, weights=np.sum(d * d, axis=1), minlength=n_groups) / n)
     q = d / np.maximum(radius, 1e-9)[groups][:, None]
-    basis = np.zeros((len(xy), 2, 6))
-    basis[:, 0, 0] = basis[:, 1, 1] = 1.0
-    basis[:, 0, 2], basis[:, 0, 3], basis[:, 1, 4], basis[:, 1, 5] = q[:, 0], q[:, 1], q[:, 0], q[:, 1]
-    per_axis = 0.5 * (cov_px2[:, 0, 0] + cov_px2[:, 1, 1])
-    mean_var = np.bincount(groups, weights=per_axis) / n
-    var = SHARED_FLOOR_PX ** 2 + SHARED_FRACTION ** 2 * mean_var
-    return basis, np.repeat(var[:, None], 6, axis=1)
+    basis = np.zeros((m, 2, 2 + 6 * n_groups))
+    var = np.zeros(2 + 6 * n_groups)
+    if m:
+        # the common offset's covariance kappa^2 mean(g g^T), in its eigenbasis (uncorrelated parameters)
+        w, v = np.linalg.eigh(LIGHT_SHIFT_PX2 ** 2 * np.einsum("ni,nj->ij", light, light) / m)
+        basis[:, :, :2] = v[None, :, :]
+        var[:2] = np.maximum(w, 0.0)
+    rows = np.arange(m)
+    col = 2 + 6 * groups
+    basis[rows, 0, col] = basis[rows, 1, col + 1] = 1.0
+    basis[rows, 0, col + 2], basis[rows, 0, col + 3] = q[:, 0], q[:, 1]
+    basis[rows, 1, col + 4], basis[rows, 1, col + 5] = q[:, 0], q[:, 1]
+    var[2:] = np.repeat(np.bincount(groups, weights=shared_px2, minlength=n_groups) / n, 6)
+    return basis, var
 
 
 def _fit_covariance(J: np.ndarray, res: np.ndarray, views: list[CameraView], tl: dict, tr: dict,
                     settings: PoseSettings) -> np.ndarray:
-    """The pose covariance per settings.covariance_scale ("model": the corner model and the shared board
-    term; "residual", "noise", "max": an isotropic corner sigma, see pose_covariance)."""
+    """The pose covariance per settings.covariance_scale ("model": the corner model and the shared errors,
+    shared_error; "residual", "noise", "max": an isotropic corner sigma, see pose_covariance)."""
     if settings.covariance_scale != "model":
         return pose_covariance(J, res, settings.covariance_scale, settings.corner_noise_px)
     # Groups: a board in one camera, in the residuals' order (left view, then right view; keys sorted).
     names = [("left", k[0]) for k in sorted(tl)] + [("right", k[0]) for k in sorted(tr)]
     _, groups = np.unique(np.array([f"{a}/{b}" for a, b in names]), return_inverse=True)
     cov_px2 = np.concatenate([v.image_covariance_px2 for v in views])
+    shared = np.concatenate([np.zeros(v.n) if v.image_shared_px2 is None else v.image_shared_px2 for v in views])
+    light = np.concatenate([np.zeros((v.n, 2)) if v.image_light_gradient is None else v.image_light_gradient
+                            for v in views])
     xy = np.concatenate([v.image_points_px for v in views])
-    basis, var = board_shared_error(xy, cov_px2, groups)
-    return model_covariance(J, cov_px2, groups, basis, var)
+    basis, var = shared_error(xy, shared, groups, light)
+    return model_covariance(J, cov_px2, np.zeros(len(xy), dtype=np.int64), basis, var[None, :])
 
 
 def _pnp(view: CameraView) -> tuple[np.ndarray, np.ndarray] | None:

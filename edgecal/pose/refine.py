@@ -18,7 +18,9 @@ class CameraView:
     ``R_cam_rig``, ``t_cam_rig_m`` place the rig frame in this camera (identity and zero for the left
     camera, the rig's T_right_left for the right one). ``image_covariance_px2`` (N, 2, 2) is each corner's
     covariance (the detector's); with it the refinement minimises the whitened residuals, without it
-    every corner weighs the same.
+    every corner weighs the same. ``image_shared_px2`` (N,) is the part of each covariance (px^2 per axis)
+    that the corners of its board share (Detection.shared_px2), ``image_light_gradient`` (N, 2) the
+    gradient of log light there (Detection.light_gradient).
     """
 
     camera: CameraModel
@@ -27,6 +29,8 @@ class CameraView:
     object_points_m: np.ndarray
     image_points_px: np.ndarray
     image_covariance_px2: np.ndarray | None = None
+    image_shared_px2: np.ndarray | None = None
+    image_light_gradient: np.ndarray | None = None
 
     @property
     def n(self) -> int:

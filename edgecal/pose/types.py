@@ -31,8 +31,8 @@ class PoseSettings:
                       80 corners in OpenCV, hence the default "linear".
     covariance_scale: how the 6x6 covariance is computed:
                       "model"    (default) from the detector's per-corner covariances (the weights of the
-                                 refinement) plus an error shared by each board's corners
-                                 (edgecal.pose.estimate.SHARED_FLOOR_PX, SHARED_FRACTION);
+                                 refinement) plus the errors corners share: each board's, and an
+                                 offset common to all (edgecal.pose.estimate.shared_error);
                       "residual" sigma^2 (J^T J)^-1 with the fit's own corner noise sigma^2 = SSR / (m - 6);
                       "noise"    the same with the configured ``corner_noise_px``;
                       "max"      the larger of the two (edgecal's default before the corner model).
