@@ -208,13 +208,13 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     # smoothing for the true noise moved corners of a hard render by up to 7 px.
     smooth_noise = noise_half * SMOOTHING_NOISE_PER_HALF_NOISE
     if all_boards_found(half.detections, target):
-        refined = _refine_at_full_resolution(half, grey, smooth_noise, noise_half, p)
+        refined = _refine_at_full_resolution(half, grey, smooth_noise, p)
         if refined is not None:
             return refined
     # The full search's thresholds (candidates, ChESS) are quantiles of the image's noise, so they need the
     # noise itself: half of it let up to 6x the candidates through on noisy frames (bench/live.py's hard
     # sequence: ~5800 per frame, now ~1100; all detections the same).
-    level = Level(grey, half_resolution_noise_sigma(grey), noise_half, smoothing_noise=smooth_noise)
+    level = Level(grey, half_resolution_noise_sigma(grey), smoothing_noise=smooth_noise)
     # pyrDown keeps the even pixels: x_full = 2 x_half.
     debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
     seeds = []
@@ -238,8 +238,8 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     return full, level
 
 
-def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sigma: float, half_noise: float,
-                               p: DetectorParams) -> tuple[DetectionDebug, Level] | None:
+def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sigma: float, p: DetectorParams
+                               ) -> tuple[DetectionDebug, Level] | None:
     """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution, on a
     window of ``grey`` around them (WINDOW_MARGIN_STEPS); also returns that window's level.
 
@@ -255,8 +255,7 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
         margin = WINDOW_MARGIN_STEPS * 2.0 * _largest_step(det.corners, det.ids) + WINDOW_MARGIN_PX
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
-    level = window_level(grey, noise_sigma, half_noise,
-                          (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
+    level = window_level(grey, noise_sigma, (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
     for det in half.detections:
         spacing = 2.0 * nearest_spacing(det.corners)
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, to 0.01 px (final_corners

@@ -23,12 +23,9 @@ class Level:
     (default noise_sigma) the smoothing (candidates.smoothing_sigma).
     """
 
-    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, half_noise: float | None = None,
-                 origin: tuple[int, int] = (0, 0), image: np.ndarray | None = None,
-                 smoothing_noise: float | None = None) -> None:
+    def __init__(self, grey: np.ndarray, noise_sigma: float | None = None, origin: tuple[int, int] = (0, 0),
+                 image: np.ndarray | None = None, smoothing_noise: float | None = None) -> None:
         self.noise_sigma = estimate_noise_sigma(grey) if noise_sigma is None else noise_sigma
-        # estimate_noise_sigma of cv2.pyrDown(image) when the pyramid measured it (the covariances reuse it)
-        self.half_noise = half_noise
         self.grey = grey
         self.origin = np.array(origin, dtype=np.float64)
         self.image = grey if image is None else image
@@ -52,8 +49,7 @@ class Level:
         return self._gradients
 
 
-def window_level(grey: np.ndarray, noise_sigma: float, half_noise: float | None,
-                  box: tuple[float, float, float, float]) -> Level:
+def window_level(grey: np.ndarray, noise_sigma: float, box: tuple[float, float, float, float]) -> Level:
     """A level on the window of ``grey`` holding ``box`` (x0, y0, x1, y1 pixels), whose smoothed image and
     gradients equal the whole image's within the box: the window reaches past it by the smoothing kernel
     and the gradient stencil (clipped at the image's border, where both mirror the same way)."""
@@ -64,4 +60,4 @@ def window_level(grey: np.ndarray, noise_sigma: float, half_noise: float | None,
     y0 = max(0, int(math.floor(box[1])) - pad)
     x1 = min(w, int(math.ceil(box[2])) + pad + 1)
     y1 = min(h, int(math.ceil(box[3])) + pad + 1)
-    return Level(grey[y0:y1, x0:x1], noise_sigma, half_noise, (x0, y0), grey)
+    return Level(grey[y0:y1, x0:x1], noise_sigma, (x0, y0), grey)
