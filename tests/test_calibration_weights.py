@@ -188,3 +188,28 @@ def test_bouguet_set_weighted_loses_nothing_against_unweighted() -> None:
         assert abs(a - b) < weighted.camera_std[0][name], (name, a, b, weighted.camera_std[0][name])
     assert 0.08 < weighted.noise_floor_px < 0.2
     assert any("scatter more than the detector's covariances say" in n for n in weighted.notes)
+
+
+def test_calibration_weighs_corners_without_the_light_shift_of_their_board() -> None:
+    """A shift all of a view's corners share (the light field's, LIGHT_SHIFT_PX2 x |grad log L|) is absorbed
+    by that view's pose: calibration's weights leave it out of the detector's covariances."""
+    from edgecal.calibration.assign import assign
+    from edgecal.detection.corner_covariance import LIGHT_SHIFT_PX2
+    from edgecal.detection.types import Detection
+
+    target = planar_target(9, 6, 25.0)
+    board = target.boards[0]
+    ids = board.ids()
+    n = len(ids)
+    xy = np.column_stack([100.0 + 30.0 * ids[:, 0], 80.0 + 30.0 * ids[:, 1]])
+    cov = np.broadcast_to(0.02 ** 2 * np.eye(2), (n, 2, 2)).copy()
+    light = np.tile([1.5e-3, -0.5e-3], (n, 1))
+    shift2 = LIGHT_SHIFT_PX2 ** 2 * float(np.sum(light[0] ** 2))
+    det = Detection(board.name, xy, ids, np.ones(n), (board.cols, board.rows),
+                    covariance=cov + 0.5 * shift2 * np.eye(2), unusable=[""] * n, light_gradient=light)
+    result = assign([det], target)
+    assert result is not None and result.corners.image_cov_px2 is not None
+    assert np.allclose(result.corners.image_cov_px2, cov)
+    det.light_gradient = None
+    unlit = assign([det], target)
+    assert unlit is not None and np.allclose(unlit.corners.image_cov_px2, cov + 0.5 * shift2 * np.eye(2))

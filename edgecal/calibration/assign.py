@@ -21,6 +21,7 @@ import numpy as np
 from edgecal.calibration.checks import DegenerateInput
 from edgecal.calibration.dlt import calibrate_dlt, dlt_projection_matrix
 from edgecal.calibration.types import CornerSet
+from edgecal.detection.corner_covariance import without_light_shift
 from edgecal.detection.types import Detection
 from edgecal.targets import Board, Target
 
@@ -84,7 +85,7 @@ class Assignment:
 
 def _corner_set(dets: list[Detection], target: Target, choice: tuple[tuple[Board, int], ...]) -> CornerSet:
     """The usable corners of ``dets`` on the boards ``choice`` names, with their covariances when every
-    detection has them."""
+    detection has them (less the light's shift each view's pose absorbs: without_light_shift)."""
     objs, imgs, covs, keys = [], [], [], []
     for det, (board, deg) in zip(dets, choice):
         src = target.board(det.board)
@@ -92,7 +93,7 @@ def _corner_set(dets: list[Detection], target: Target, choice: tuple[tuple[Board
         ids = rotate_ids(np.asarray(det.ids, dtype=np.int64).reshape(-1, 2)[ok], src.cols, src.rows, deg)
         objs.append(board.target_points_mm(ids))
         imgs.append(np.asarray(det.corners, dtype=np.float64).reshape(-1, 2)[ok])
-        covs.append(None if det.covariance is None else det.covariance[ok])
+        covs.append(None if det.covariance is None else without_light_shift(det.covariance, det.light_gradient)[ok])
         keys += [(board.name, int(c), int(r)) for c, r in ids]
     known = [c for c in covs if c is not None]
     cov = np.concatenate(known) if len(known) == len(covs) else None

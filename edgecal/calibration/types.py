@@ -56,7 +56,7 @@ class CornerSet:
     object_mm: np.ndarray   # (N, 3)
     image_px: np.ndarray    # (N, 2)
     keys: tuple[tuple[str, int, int], ...]
-    image_cov_px2: np.ndarray | None = None   # (N, 2, 2) the detector's corner covariances, if known
+    image_cov_px2: np.ndarray | None = None   # (N, 2, 2) the detector's covariances less the light's shift, if known
 
     def __len__(self) -> int:
         return len(self.keys)
