@@ -252,7 +252,8 @@ class CovarianceTimer:
         def timed(grey, smooth, smoothing_sigma, corners, *args, **kwargs):
             if self.ablate:
                 n = len(corners)
-                return np.broadcast_to(0.01 * np.eye(2), (n, 2, 2)).copy(), [""] * n
+                return cc.CornerCovariances(np.broadcast_to(0.01 * np.eye(2), (n, 2, 2)).copy(), np.zeros(n),
+                                            [""] * n, np.zeros((n, 2)))
             t0, c0 = time.perf_counter(), time.thread_time()
             out = original(grey, smooth, smoothing_sigma, corners, *args, **kwargs)
             self.wall_s.append(time.perf_counter() - t0)
@@ -286,7 +287,7 @@ def _strip_covariances(dets: list) -> list:
     for d in dets:
         ok = d.usable()
         out.append(replace(d, corners=d.corners[ok], ids=d.ids[ok], quality=d.quality[ok], covariance=None,
-                           unusable=[]))
+                           unusable=[], shared_px2=None, light_gradient=None))
     return out
 
 
