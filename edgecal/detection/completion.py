@@ -274,6 +274,41 @@ def _extrapolate(grid: dict[tuple[int, int], np.ndarray], labels: list[tuple[int
     return pts, spacing, keys
 
 
+class _VerifiedPredictions:
+    """verify_predictions for one grid's completion, each distinct prediction verified once.
+
+    Completion predicts every hole and side again in each round, and a prediction the grid did not change
+    (a hole or a side that failed, far from what was added) comes out bit for bit the same: its refinement
+    and probe would too (each point is refined and probed on its own), so they are looked up instead (on
+    bench/live.py's hard frames about 40 % of the predictions, and the whole last round).
+    """
+
+    def __init__(self, smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, params: DetectorParams,
+                 accepted: np.ndarray | None, criteria: tuple) -> None:
+        self._args = (smooth, gx, gy)
+        self._params = params
+        self._accepted = accepted
+        self._criteria = criteria
+        self._seen: dict[tuple[float, float, float, bool], tuple[np.ndarray, bool]] = {}
+
+    def verify(self, preds: np.ndarray, spacing: np.ndarray, pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(refined (M, 2), good (M,) bool) of verify_predictions for predictions (M, 2) with their
+        nearest-corner distances (M,) and pinned flags (M,)."""
+        keys = [(x, y, s, q) for (x, y), s, q in zip(preds.tolist(), spacing.tolist(), pinned.tolist())]
+        new = [i for i, k in enumerate(keys) if k not in self._seen]
+        if new:
+            sel = np.array(new)
+            refined, good, _quality = verify_predictions(*self._args, preds[sel], spacing[sel], self._params,
+                                                         pinned[sel], self._accepted, self._criteria)
+            for j, i in enumerate(new):
+                self._seen.setdefault(keys[i], (refined[j], bool(good[j])))
+        out = np.empty((len(keys), 2))
+        good_all = np.empty(len(keys), dtype=bool)
+        for i, k in enumerate(keys):
+            out[i], good_all[i] = self._seen[k]
+        return out, good_all
+
+
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,
                   gy: np.ndarray, max_dim: int, params: DetectorParams,
                   accepted: np.ndarray | None = None) -> dict[tuple[int, int], np.ndarray]:
@@ -282,6 +317,8 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
     ``accepted``: points the probe accepted on this level, tried first at every predicted position.
     """
     grid = dict(grid)
+    # the grid's corners get their final refinement once the board is known (SEARCH_CRITERIA here)
+    verified = _VerifiedPredictions(smooth, gx, gy, params, accepted, SEARCH_CRITERIA)
     for _ in range(2 * max_dim + 2):
         us = [u for u, _ in grid]
         vs = [v for _, v in grid]
@@ -310,9 +347,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         if not keys:
             break
         n_holes = groups[0][0]
-        # the grid's corners get their final refinement once the board is known (SEARCH_CRITERIA here)
-        refined, good, _quality = verify_predictions(smooth, gx, gy, np.asarray(preds), np.asarray(spac), params,
-                                                     np.arange(len(keys)) < n_holes, accepted, SEARCH_CRITERIA)
+        refined, good = verified.verify(np.asarray(preds), np.asarray(spac), np.arange(len(keys)) < n_holes)
         start = 0
         for end, side, side_outward in groups:
             sel = range(start, end)

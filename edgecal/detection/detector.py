@@ -201,8 +201,12 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     half_level = Level(half_grey, noise_half)
     half, half_grids = _find_grids(half_level, p)
     # Provisional: whatever the half-resolution search finds is refined, checked and rated at full
-    # resolution below (or searched for there again), so its corners are not polished here.
-    _boards_from_grids(half_level, half_grids, target, p, half, provisional=True)
+    # resolution below (or searched for there again), so its corners are not polished here. Its boards are
+    # only used when they are all of the target's: each grid names one board at most, so with fewer grids
+    # than boards the completion and ordering there would be thrown away (the full-resolution search
+    # starts again from the raw grids).
+    if len(half_grids) >= len({b.name for b in target.boards}):
+        _boards_from_grids(half_level, half_grids, target, p, half, provisional=True)
     # The full-resolution smoothing keeps the value it was tuned with (subpixel accuracy): noise_half / 0.273
     # (pyrDown's gain on white noise), about half the image's noise (see half_resolution_noise_sigma);
     # smoothing for the true noise moved corners of a hard render by up to 7 px.
