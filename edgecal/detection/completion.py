@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import (
@@ -58,6 +59,17 @@ def _homographies(src: np.ndarray, dst: np.ndarray, valid: np.ndarray) -> np.nda
     return t_inv @ h
 
 
+def dense_labels(grid: dict[tuple[int, int], np.ndarray], margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The grid as a dense array (U, V, 2) over its labels' span plus ``margin`` on every side, NaN where a
+    label is missing, and the label (u, v) of its element [0, 0]."""
+    keys = np.array(list(grid.keys()), dtype=np.int64)
+    lo = keys.min(axis=0) - margin
+    span = keys.max(axis=0) - lo + 1 + margin
+    dense = np.full((span[0], span[1], 2), np.nan)
+    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = np.array(list(grid.values()), dtype=np.float64)
+    return dense, lo
+
+
 def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int, int]]
                   ) -> tuple[list[np.ndarray], list[tuple[int, int]], list[float]]:
     """Where the grid's missing labels ``holes`` lie: each from a homography of its own neighbourhood
@@ -67,19 +79,22 @@ def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int
     left out."""
     if not holes:
         return [], [], []
-    hl = np.asarray(holes, dtype=np.int64)
-    keys = np.array(list(grid.keys()), dtype=np.int64)
-    lo = keys.min(axis=0) - 2
-    span = keys.max(axis=0) - lo + 3
-    dense = np.full((span[0], span[1], 2), np.nan)
-    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = np.array(list(grid.values()), dtype=np.float64)
+    dense, lo = dense_labels(grid)
+    out_p, out_s = _predict_from_dense(dense, lo, np.asarray(holes, dtype=np.int64))
+    ok = np.isfinite(out_p).all(axis=1) & np.isfinite(out_s)
+    return ([out_p[i] for i in np.nonzero(ok)[0]], [holes[i] for i in np.nonzero(ok)[0]],
+            [float(out_s[i]) for i in np.nonzero(ok)[0]])
+
+
+def _predict_from_dense(dense: np.ndarray, lo: np.ndarray, hl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """predict_holes on the grid's dense_labels (margin 2) for the labels ``hl`` (B, 2): points (B, 2) and
+    nearest-corner distances (B,), NaN (or inf) where a hole has no usable neighbourhood."""
+    span = np.array(dense.shape[:2])
     out_p = np.full((len(hl), 2), np.nan)
     out_s = np.full(len(hl), np.nan)
     todo = np.ones(len(hl), dtype=bool)
     for reach in (1, 2):
-        du, dv = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
-        off = np.stack([du.ravel(), dv.ravel()], axis=1)
-        off = off[(off != 0).any(axis=1)]
+        off = _RING_OFFSETS[reach]
         idx = np.nonzero(todo)[0]
         if len(idx) == 0:
             break
@@ -97,16 +112,25 @@ def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int
             continue
         b = np.nonzero(usable)[0]
         h = _homographies(src[b], np.nan_to_num(dst[b]), valid[b])
-        probe = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]])
-        q = np.einsum("bij,kj->bki", h, np.c_[probe, np.ones(len(probe))])
+        q = np.einsum("bij,kj->bki", h, _HOMOGRAPHY_PROBE)
         with np.errstate(divide="ignore", invalid="ignore"):  # a point on the horizon: inf, left out
             q = q[..., :2] / q[..., 2:3]
         out_p[idx[b]] = q[:, 0]
         out_s[idx[b]] = np.linalg.norm(q[:, 1:] - q[:, :1], axis=2).min(axis=1)
         todo[idx[b]] = False
-    ok = np.isfinite(out_p).all(axis=1) & np.isfinite(out_s)
-    return ([out_p[i] for i in np.nonzero(ok)[0]], [holes[i] for i in np.nonzero(ok)[0]],
-            [float(out_s[i]) for i in np.nonzero(ok)[0]])
+    return out_p, out_s
+
+
+def _ring_offsets(reach: int) -> np.ndarray:
+    """Label offsets (N, 2) of the (2 reach + 1)^2 neighbourhood without its centre, u-major."""
+    du, dv = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
+    off = np.stack([du.ravel(), dv.ravel()], axis=1)
+    return off[(off != 0).any(axis=1)]
+
+
+_RING_OFFSETS = {reach: _ring_offsets(reach) for reach in (1, 2)}
+# The hole (label offset 0) and its four diagonal neighbours, homogeneous: the point and the spacing there.
+_HOMOGRAPHY_PROBE = np.c_[np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]]), np.ones(5)]
 
 
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
@@ -238,40 +262,53 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     return refined, (ok | (pinned & pinned_ok)) & near & inside, probe_quality(meas, params)
 
 
-def _extrapolate(grid: dict[tuple[int, int], np.ndarray], labels: list[tuple[int, int]],
-                 outward: tuple[int, int]) -> tuple[list[np.ndarray], list[float], list[tuple[int, int]]]:
-    """Predict a new outer line one step ``outward``, each point along its own grid line.
+@njit(cache=True, nogil=True)
+def _extrapolate(dense: np.ndarray, lo_u: int, lo_v: int, labels: np.ndarray, outward: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Predict new outer lines, each point one step ``outward`` (K, 2: du, dv per label) along its own
+    grid line, for the labels (K, 2) on the grid's dense_labels ``dense`` (label (lo_u, lo_v) at [0, 0]).
 
     Quadratic extrapolation from the three nearest points of that line (linear from two): unlike a homography
-    it follows lines that a fisheye lens bends. Returns (points, nearest-corner distances, their labels).
+    it follows lines that a fisheye lens bends. Returns (points (K, 2), nearest-corner distances (K,),
+    predicted (K,) bool: False where the line's two nearest points are not both there).
     """
-    du, dv = outward
-    pts, spacing, keys = [], [], []
-    hypot = np.hypot
-    # Per-point arithmetic on Python floats: the same float64 operations in the same order as on the (2,)
-    # arrays (bit-identical), without numpy's per-call overhead (~8 small array operations per point).
-    for u, v in labels:
-        p0 = grid.get((u - du, v - dv))
-        p1 = grid.get((u - 2 * du, v - 2 * dv))
-        if p0 is None or p1 is None:
+    n = labels.shape[0]
+    nu, nv = dense.shape[0], dense.shape[1]
+    pts = np.zeros((n, 2))
+    spacing = np.zeros(n)
+    ok = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        du = outward[i, 0]
+        dv = outward[i, 1]
+        u = labels[i, 0] - lo_u
+        v = labels[i, 1] - lo_v
+        x0, y0 = _dense_at(dense, nu, nv, u - du, v - dv)
+        x1, y1 = _dense_at(dense, nu, nv, u - 2 * du, v - 2 * dv)
+        if not (math.isfinite(x0) and math.isfinite(x1)):
             continue
-        p2 = grid.get((u - 3 * du, v - 3 * dv))
-        x0, y0 = p0.tolist()
-        x1, y1 = p1.tolist()
-        if p2 is None:
+        x2, y2 = _dense_at(dense, nu, nv, u - 3 * du, v - 3 * dv)
+        if not math.isfinite(x2):
             nx, ny = 2.0 * x0 - x1, 2.0 * y0 - y1
         else:
-            x2, y2 = p2.tolist()
             nx, ny = 3.0 * x0 - 3.0 * x1 + x2, 3.0 * y0 - 3.0 * y1 + y2
-        d = float(hypot(nx - x0, ny - y0))
-        for q in (grid.get((u - du + dv, v - dv + du)), grid.get((u - du - dv, v - dv - du))):
-            if q is not None:
-                qx, qy = q.tolist()
-                d = min(d, float(hypot(qx - x0, qy - y0)))
-        pts.append(np.array((nx, ny)))
-        spacing.append(d)
-        keys.append((u, v))
-    return pts, spacing, keys
+        d = math.hypot(nx - x0, ny - y0)
+        for su in (1, -1):
+            qx, qy = _dense_at(dense, nu, nv, u - du + su * dv, v - dv + su * du)
+            if math.isfinite(qx):
+                d = min(d, math.hypot(qx - x0, qy - y0))
+        pts[i, 0] = nx
+        pts[i, 1] = ny
+        spacing[i] = d
+        ok[i] = True
+    return pts, spacing, ok
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _dense_at(dense: np.ndarray, nu: int, nv: int, u: int, v: int) -> tuple[float, float]:
+    """dense[u, v] (NaN outside)."""
+    if u < 0 or v < 0 or u >= nu or v >= nv:
+        return np.nan, np.nan
+    return dense[u, v, 0], dense[u, v, 1]
 
 
 class _VerifiedPredictions:
@@ -320,13 +357,17 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
     # the grid's corners get their final refinement once the board is known (SEARCH_CRITERIA here)
     verified = _VerifiedPredictions(smooth, gx, gy, params, accepted, SEARCH_CRITERIA)
     for _ in range(2 * max_dim + 2):
-        us = [u for u, _ in grid]
-        vs = [v for _, v in grid]
-        u0, u1, v0, v1 = min(us), max(us), min(vs), max(vs)
+        dense, lo = dense_labels(grid)
+        u0, v0 = (int(c) for c in lo + 2)
+        u1, v1 = (int(c) for c in lo + np.array(dense.shape[:2]) - 3)
         added = False
         # Holes: each from a homography of its own neighbourhood (lens distortion is local).
-        holes = [(u, v) for u in range(u0, u1 + 1) for v in range(v0, v1 + 1) if (u, v) not in grid]
-        preds, keys, spac = predict_holes(grid, holes)
+        holes = np.argwhere(~np.isfinite(dense[2:-2, 2:-2, 0])) + (u0, v0)
+        hole_p, hole_s = _predict_from_dense(dense, lo, holes)
+        found = np.isfinite(hole_p).all(axis=1) & np.isfinite(hole_s)
+        preds = list(hole_p[found])
+        keys = [(int(u), int(v)) for u, v in holes[found]]
+        spac = hole_s[found].tolist()
         # Sides: a whole new row or column, each point extrapolated along its own grid line.
         sides = []
         if u1 - u0 + 1 < max_dim:
@@ -336,14 +377,20 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
             sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (0, -1)),
                       ([(u, v1 + 1) for u in range(u0, u1 + 1)], (0, 1))]
         groups: list[tuple[int, list | None, tuple[int, int] | None]] = [(len(keys), None, None)]
-        for labels, outward in sides:
-            p, sp, ok_labels = _extrapolate(grid, labels, outward)
-            if not ok_labels:
-                continue
-            preds.extend(p)
-            keys.extend(ok_labels)
-            spac.extend(sp)
-            groups.append((len(keys), labels, outward))
+        if sides:
+            side_labels = np.array([uv for labels, _o in sides for uv in labels], dtype=np.int64)
+            side_out = np.array([o for labels, o in sides for _uv in labels], dtype=np.int64)
+            side_p, side_s, side_ok = _extrapolate(dense, int(lo[0]), int(lo[1]), side_labels, side_out)
+            start = 0
+            for labels, outward in sides:
+                sel = np.flatnonzero(side_ok[start:start + len(labels)]) + start
+                start += len(labels)
+                if not len(sel):
+                    continue
+                preds.extend(side_p[sel])
+                keys.extend((int(u), int(v)) for u, v in side_labels[sel])
+                spac.extend(side_s[sel].tolist())
+                groups.append((len(keys), labels, outward))
         if not keys:
             break
         n_holes = groups[0][0]
