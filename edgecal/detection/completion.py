@@ -326,24 +326,35 @@ class _VerifiedPredictions:
         self._params = params
         self._accepted = accepted
         self._criteria = criteria
-        self._seen: dict[tuple[float, float, float, bool], tuple[np.ndarray, bool]] = {}
+        self._index: dict[tuple[float, float, float, bool], int] = {}  # prediction -> row of the results
+        self._refined = np.zeros((0, 2))
+        self._good = np.zeros(0, dtype=bool)
 
     def verify(self, preds: np.ndarray, spacing: np.ndarray, pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(refined (M, 2), good (M,) bool) of verify_predictions for predictions (M, 2) with their
         nearest-corner distances (M,) and pinned flags (M,)."""
-        keys = [(x, y, s, q) for (x, y), s, q in zip(preds.tolist(), spacing.tolist(), pinned.tolist())]
-        new = [i for i, k in enumerate(keys) if k not in self._seen]
+        keys = list(zip(preds[:, 0].tolist(), preds[:, 1].tolist(), spacing.tolist(), pinned.tolist()))
+        index = self._index
+        rows = []
+        new = []
+        n = len(self._good)
+        for i, k in enumerate(keys):
+            row = index.get(k)
+            if row is None:
+                row = index[k] = n + len(new)
+                new.append(i)
+            rows.append(row)
         if new:
             sel = np.array(new)
             refined, good, _quality = verify_predictions(*self._args, preds[sel], spacing[sel], self._params,
                                                          pinned[sel], self._accepted, self._criteria)
-            for j, i in enumerate(new):
-                self._seen.setdefault(keys[i], (refined[j], bool(good[j])))
-        out = np.empty((len(keys), 2))
-        good_all = np.empty(len(keys), dtype=bool)
-        for i, k in enumerate(keys):
-            out[i], good_all[i] = self._seen[k]
-        return out, good_all
+            if n == 0 and len(new) == len(keys):
+                self._refined, self._good = refined, good
+                return refined.copy(), good.copy()
+            self._refined = np.concatenate([self._refined, refined])
+            self._good = np.concatenate([self._good, good])
+        at = np.array(rows, dtype=np.int64)
+        return self._refined[at], self._good[at]
 
 
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,
