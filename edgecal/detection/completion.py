@@ -335,8 +335,8 @@ class _VerifiedPredictions:
         nearest-corner distances (M,) and pinned flags (M,)."""
         keys = list(zip(preds[:, 0].tolist(), preds[:, 1].tolist(), spacing.tolist(), pinned.tolist()))
         index = self._index
-        rows = []
-        new = []
+        rows: list[int] = []
+        new: list[int] = []
         n = len(self._good)
         for i, k in enumerate(keys):
             row = index.get(k)
@@ -394,13 +394,13 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
             side_p, side_s, side_ok = _extrapolate(dense, int(lo[0]), int(lo[1]), side_labels, side_out)
             start = 0
             for labels, outward in sides:
-                sel = np.flatnonzero(side_ok[start:start + len(labels)]) + start
+                on_side = np.flatnonzero(side_ok[start:start + len(labels)]) + start
                 start += len(labels)
-                if not len(sel):
+                if not len(on_side):
                     continue
-                preds.extend(side_p[sel])
-                keys.extend((int(u), int(v)) for u, v in side_labels[sel])
-                spac.extend(side_s[sel].tolist())
+                preds.extend(side_p[on_side])
+                keys.extend((int(u), int(v)) for u, v in side_labels[on_side])
+                spac.extend(side_s[on_side].tolist())
                 groups.append((len(keys), labels, outward))
         if not keys:
             break

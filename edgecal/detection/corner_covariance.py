@@ -344,11 +344,46 @@ S_LNXX, S_LNXY, S_LNYY = 13, 14, 15    # covariance of that light gradient for u
 N_SADDLE = 16
 
 
-@njit(cache=True, nogil=True)
 def saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray, gauss: np.ndarray,
                       fit: np.ndarray, half: int, blur_half: int, spacing: np.ndarray,
                       steps: np.ndarray) -> np.ndarray:
-    """The saddle fit (subpixel.saddle_refine) at each corner, and how raw image noise reaches it (N, N_SADDLE).
+    """The saddle fit (subpixel.saddle_refine) at each corner, and how raw image noise reaches it (N, N_SADDLE);
+    fit_corr: _fit_correlations of ``fit``.
+    see _saddle_statistics (one numba pass over all corners)."""
+    return _saddle_statistics(smooth, corners, blur, gauss, fit, half, blur_half, spacing, steps,
+                              _fit_correlations(np.ascontiguousarray(fit, dtype=np.float64), 2 * half + 1))
+
+
+def _fit_correlations(fit: np.ndarray, n_fit: int) -> np.ndarray:
+    """Cross-correlations (3, 2 n_fit - 1, 2 n_fit - 1) of the saddle fit's linear-term rows fit[3] (d) and
+    fit[4] (e) on their n_fit x n_fit window: [0] d with d, [1] d with e, [2] e with e, at lags (dy, dx) from
+    -(n_fit - 1); computed once per fit matrix."""
+    key = (fit.shape, fit.tobytes())
+    got = _FIT_CORRELATIONS.get(key)
+    if got is None:
+        rows = fit[3:5].reshape(2, n_fit, n_fit)
+        lag = n_fit - 1
+        got = np.zeros((3, 2 * lag + 1, 2 * lag + 1))
+        for k, (j, m) in enumerate(((0, 0), (0, 1), (1, 1))):
+            padded = np.zeros((n_fit + 2 * lag, n_fit + 2 * lag))
+            padded[lag:lag + n_fit, lag:lag + n_fit] = rows[m]
+            for dy in range(-lag, lag + 1):
+                for dx in range(-lag, lag + 1):
+                    shifted = padded[lag + dy:lag + dy + n_fit, lag + dx:lag + dx + n_fit]
+                    got[k, dy + lag, dx + lag] = float((rows[j] * shifted).sum())
+        _FIT_CORRELATIONS[key] = got
+    return got
+
+
+_FIT_CORRELATIONS: dict[tuple, np.ndarray] = {}
+
+
+@njit(cache=True, nogil=True)
+def _saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray, gauss: np.ndarray,
+                       fit: np.ndarray, half: int, blur_half: int, spacing: np.ndarray,
+                       steps: np.ndarray, fit_corr: np.ndarray) -> np.ndarray:
+    """The saddle fit (subpixel.saddle_refine) at each corner, and how raw image noise reaches it (N, N_SADDLE);
+    fit_corr: _fit_correlations of ``fit``.
 
     smooth: (H, W) float32 the detector's smoothed image; corners: (N, 2) px; blur: (N,) the fit's extra
     smoothing sigma per corner; gauss: the detector's 1-D smoothing kernel (noise_kernel); fit: (5, (2 half +
@@ -372,7 +407,6 @@ def saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray,
     nk = 2 * blur_half + 1
     kg = gauss.shape[0]
     nc = nk + kg                    # length of the combined 1-D kernel (extra blur * Gaussian * bilinear)
-    nm = n_fit + nc - 1
     patch = np.empty((side, side))
     rows = np.empty((side, n_fit))
     win = np.empty(n_fit * n_fit)
@@ -380,8 +414,10 @@ def saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray,
     kb = np.empty(nk + kg - 1)
     cx = np.empty(nc)
     cy = np.empty(nc)
-    tmp = np.empty((2, n_fit, nm))
-    maps = np.empty((2, nm, nm))
+    lag = n_fit - 1  # the fit rows' correlations vanish beyond it
+    n_lag = 2 * lag + 1
+    rcx = np.empty(n_lag)
+    rcy = np.empty(n_lag)
     r0 = half + blur_half
     gauss2 = 0.0
     for t in range(kg):
@@ -512,29 +548,28 @@ def saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray,
             cx[t + 1] += kb[t] * fx
             cy[t] += kb[t] * (1.0 - fy)
             cy[t + 1] += kb[t] * fy
-        # Each linear term's weights on the raw pixels: its fit row (n_fit x n_fit) spread by the kernel.
-        for j in range(2):
-            for a in range(n_fit):
-                for o in range(nm):
-                    tmp[j, a, o] = 0.0
-                for b in range(n_fit):
-                    f = fit[3 + j, a * n_fit + b]
-                    for t in range(nc):
-                        tmp[j, a, b + t] += f * cx[t]
-            for oy in range(nm):
-                for ox in range(nm):
-                    maps[j, oy, ox] = 0.0
-            for a in range(n_fit):
-                for t in range(nc):
-                    ct = cy[t]
-                    for ox in range(nm):
-                        maps[j, a + t, ox] += ct * tmp[j, a, ox]
+        # The linear terms' noise: sum over the raw pixels of the products of their weights (each fit row
+        # spread by the separable kernel cy x cx), as the fit rows' cross-correlations (fixed, per lag)
+        # times the kernel's autocorrelation per axis: ~1/4 of the work of spreading the rows.
+        for t in range(n_lag):
+            s = t - lag
+            ax = 0.0
+            ay = 0.0
+            for u in range(max(0, -s), min(nc, nc - s)):
+                ax += cx[u] * cx[u + s]
+                ay += cy[u] * cy[u + s]
+            rcx[t] = ax
+            rcy[t] = ay
         sdd = sde = see = 0.0
-        for oy in range(nm):
-            for ox in range(nm):
-                sdd += maps[0, oy, ox] * maps[0, oy, ox]
-                sde += maps[0, oy, ox] * maps[1, oy, ox]
-                see += maps[1, oy, ox] * maps[1, oy, ox]
+        for ty in range(n_lag):
+            pdd = pde = pee = 0.0
+            for tx in range(n_lag):
+                pdd += fit_corr[0, ty, tx] * rcx[tx]
+                pde += fit_corr[1, ty, tx] * rcx[tx]
+                pee += fit_corr[2, ty, tx] * rcx[tx]
+            sdd += pdd * rcy[ty]
+            sde += pde * rcy[ty]
+            see += pee * rcy[ty]
         out[i, S_NXX] = sdd
         out[i, S_NXY] = sde
         out[i, S_NYY] = see
