@@ -160,38 +160,60 @@ def label_components(nbr: np.ndarray, order: np.ndarray, alive: np.ndarray) -> t
     return labels, axis
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
 def cross_ratio_strikes(pts: np.ndarray, labels: np.ndarray, tolerance: float) -> np.ndarray:
     """Eq. (8) on every run of four consecutive labels along every grid row and column.
 
     Returns, per point, how many runs through it fail the check. Positions along a run are cumulative step
     lengths: exact for a straight line and, unlike a projection on the chord, unbiased when a lens bends it.
+    pts (K, 2) float64, labels (K, 3) int64 (component, u, v; component -1 = none). One pass per component
+    over its dense label array (error_model numpy: a zero step gives inf/NaN, a failed run, not an error).
     """
-    strikes = np.zeros(len(pts), dtype=np.int64)
-    for comp in np.unique(labels[:, 0]):
-        if comp < 0:
+    k_pts = pts.shape[0]
+    strikes = np.zeros(k_pts, dtype=np.int64)
+    n_comp = 0
+    for i in range(k_pts):
+        n_comp = max(n_comp, labels[i, 0] + 1)
+    big = 1 << 62
+    lo = np.full((n_comp, 2), big, dtype=np.int64)
+    hi = np.full((n_comp, 2), -big, dtype=np.int64)
+    for i in range(k_pts):
+        c = labels[i, 0]
+        if c < 0:
             continue
-        members = np.nonzero(labels[:, 0] == comp)[0]
-        uv = labels[members, 1:] - labels[members, 1:].min(axis=0)
-        index = np.full((uv[:, 1].max() + 1, uv[:, 0].max() + 1), -1, dtype=np.int64)
-        index[uv[:, 1], uv[:, 0]] = members
-        for lines in (index, index.T):  # rows, then columns
-            if lines.shape[1] < 4:
+        for a in range(2):
+            lo[c, a] = min(lo[c, a], labels[i, 1 + a])
+            hi[c, a] = max(hi[c, a], labels[i, 1 + a])
+    run = np.empty(4, dtype=np.int64)
+    for c in range(n_comp):
+        if hi[c, 0] < lo[c, 0]:
+            continue
+        nu = hi[c, 0] - lo[c, 0] + 1
+        nv = hi[c, 1] - lo[c, 1] + 1
+        index = np.full((nv, nu), -1, dtype=np.int64)
+        for i in range(k_pts):
+            if labels[i, 0] == c:
+                index[labels[i, 2] - lo[c, 1], labels[i, 1] - lo[c, 0]] = i
+        for along_u in (True, False):  # rows, then columns
+            n_lines = nv if along_u else nu
+            length = nu if along_u else nv
+            if length < 4:
                 continue
-            # every window of four consecutive labels on every line: shape (n_lines, n_windows, 4)
-            win = np.lib.stride_tricks.sliding_window_view(lines, 4, axis=1)
-            win = win[(win >= 0).all(axis=2)]
-            if len(win) == 0:
-                continue
-            p = pts[win]
-            steps = np.hypot(*(p[:, 1:] - p[:, :-1]).transpose(2, 0, 1))
-            x2 = steps[:, 0]
-            x3 = x2 + steps[:, 1]
-            x4 = x3 + steps[:, 2]
-            den = (x3 - x2) * x4
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cr = x3 * (x4 - x2) / den
-            bad = ~(np.abs(cr - CROSS_RATIO_EQUAL_STEPS) / CROSS_RATIO_EQUAL_STEPS <= tolerance)
-            np.add.at(strikes, win[bad].ravel(), 1)
+            for line in range(n_lines):
+                for start in range(length - 3):
+                    ok = True
+                    for t in range(4):
+                        run[t] = index[line, start + t] if along_u else index[start + t, line]
+                        ok = ok and run[t] >= 0
+                    if not ok:
+                        continue
+                    x2 = math.hypot(pts[run[1], 0] - pts[run[0], 0], pts[run[1], 1] - pts[run[0], 1])
+                    x3 = x2 + math.hypot(pts[run[2], 0] - pts[run[1], 0], pts[run[2], 1] - pts[run[1], 1])
+                    x4 = x3 + math.hypot(pts[run[3], 0] - pts[run[2], 0], pts[run[3], 1] - pts[run[2], 1])
+                    cr = x3 * (x4 - x2) / ((x3 - x2) * x4)
+                    if not abs(cr - CROSS_RATIO_EQUAL_STEPS) / CROSS_RATIO_EQUAL_STEPS <= tolerance:
+                        for t in range(4):
+                            strikes[run[t]] += 1
     return strikes
 
 
@@ -212,7 +234,7 @@ def group_grids(pts: np.ndarray, dirs: np.ndarray, spacing: np.ndarray, score: n
     labels = np.full((k_pts, 3), -1, dtype=np.int64)
     for _ in range(max_rounds):
         labels, _axis = label_components(nbr, order, alive)
-        strikes = cross_ratio_strikes(pts, labels, cross_ratio_tolerance)
+        strikes = cross_ratio_strikes(np.ascontiguousarray(pts, np.float64), labels, cross_ratio_tolerance)
         if not strikes.any():
             break
         # Remove the worst offenders only: a wrong point sits in more failing runs than its neighbours;
