@@ -374,10 +374,12 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
     order = order[np.argsort(half[order], kind="stable")]
     sizes = half[order]
     block = start[order].reshape(-1, 1, 2)
-    cuts = np.flatnonzero(np.diff(sizes)) + 1
-    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(order)]):
+    # one call per run of equal sizes (plain lists: np.r_ cost more than a small call's refinement)
+    bounds = [0, *(np.flatnonzero(sizes[1:] != sizes[:-1]) + 1).tolist(), len(order)]
+    for a, b in zip(bounds[:-1], bounds[1:]):
         part = block[a:b]  # a contiguous view: cornerSubPix refines it in place
-        cv2.cornerSubPix(smooth, part, (int(sizes[a]), int(sizes[a])), (-1, -1), criteria)
+        size = int(sizes[a])
+        cv2.cornerSubPix(smooth, part, (size, size), (-1, -1), criteria)
     moved = np.linalg.norm(block[:, 0] - start[order], axis=1)
     good = moved < (max_move_px if max_move_px is not None else np.maximum(1.5, 0.5 * sizes))
     out = start.copy()
