@@ -82,13 +82,16 @@ def _fill_profile(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: fl
     reach = max(abs(radius), abs(r_in)) + 1.0
     if x - reach >= 0.0 and y - reach >= 0.0 and x + reach <= w - 2.0 and y + reach <= h - 2.0:
         # Every sample lies a pixel inside the image: _bilinear_pair's cell without its bounds checks (the
-        # same arithmetic, so the same profile; most candidates, ~13 % of the probe's time).
+        # same arithmetic, so the same profile; most candidates, ~13 % of the probe's time). The rays are the
+        # inner loop, each ray's sum still taken from r_in outwards (the same sums): independent rays side
+        # by side run ~1/4 faster than one ray's chain of dependent additions.
         for k in range(n):
-            c = cos_t[k]
-            s = sin_t[k]
-            acc = 0.0
-            for i in range(n_steps):
-                r = r_in + i * step
+            out[k] = 0.0
+        for i in range(n_steps):
+            r = r_in + i * step
+            for k in range(n):
+                c = cos_t[k]
+                s = sin_t[k]
                 sx = x + r * c
                 sy = y + r * s
                 x0 = int(sx)
@@ -96,10 +99,11 @@ def _fill_profile(gx: np.ndarray, gy: np.ndarray, x: float, y: float, radius: fl
                 ex = _interpolate(gx, x0, y0, sx - x0, sy - y0)
                 ey = _interpolate(gy, x0, y0, sx - x0, sy - y0)
                 if edge_mode == EDGE_MAGNITUDE:
-                    acc += math.sqrt(ex * ex + ey * ey)
+                    out[k] += math.sqrt(ex * ex + ey * ey)
                 else:
-                    acc += abs(-ex * s + ey * c)
-            out[k] = acc / n_steps
+                    out[k] += abs(-ex * s + ey * c)
+        for k in range(n):
+            out[k] = out[k] / n_steps
         return
     for k in range(n):
         c = cos_t[k]
