@@ -446,18 +446,21 @@ def _saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray
                 xx = x0 + b - r0
                 patch[a, b] = ((smooth[yy, xx] * (1.0 - fx) + smooth[yy, xx + 1] * fx) * (1.0 - fy)
                                + (smooth[yy + 1, xx] * (1.0 - fx) + smooth[yy + 1, xx + 1] * fx) * fy)
+        # each output's taps summed in order (as the refiner does), a row of outputs at a time
         for a in range(side):
             for b in range(n_fit):
-                acc = 0.0
-                for k in range(nk):
-                    acc += patch[a, b + k] * kern[k]
-                rows[a, b] = acc
+                rows[a, b] = 0.0
+            for k in range(nk):
+                kk = kern[k]
+                for b in range(n_fit):
+                    rows[a, b] += patch[a, b + k] * kk
         for a in range(n_fit):
             for b in range(n_fit):
-                acc = 0.0
-                for k in range(nk):
-                    acc += rows[a + k, b] * kern[k]
-                win[a * n_fit + b] = acc
+                win[a * n_fit + b] = 0.0
+            for k in range(nk):
+                kk = kern[k]
+                for b in range(n_fit):
+                    win[a * n_fit + b] += rows[a + k, b] * kk
         c = fit_coefficients(fit, win, 6)
         hxx = 2.0 * c[0]
         hxy = c[1]

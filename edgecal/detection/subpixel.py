@@ -512,11 +512,12 @@ def fit_coefficients(fit: np.ndarray, win: np.ndarray, n: int) -> np.ndarray:
     """The first ``n`` coefficients of the saddle fit's quadratic: rows of its weighted pseudo-inverse ``fit``
     applied to the window's values ``win`` (the fit and its covariance, corner_covariance, share it)."""
     c = np.zeros(n)
-    for j in range(n):
-        acc = 0.0
-        for q in range(win.shape[0]):
-            acc += fit[j, q] * win[q]
-        c[j] = acc
+    # the coefficients side by side (each still summed over the window in order: the same sums), not one
+    # long chain of dependent additions at a time
+    for q in range(win.shape[0]):
+        wq = win[q]
+        for j in range(n):
+            c[j] += fit[j, q] * wq
     return c
 
 
@@ -560,20 +561,23 @@ def _saddle_kernel(smooth: np.ndarray, pts: np.ndarray, sigma: np.ndarray, fit: 
             if x0 != px or y0 != py:
                 px = x0
                 py = y0
+                # each output's taps summed in order as before (the same values), a row of outputs at a time
                 for a in range(n_grid + 2 * blur):
-                    yy = y0 - half - blur + a
+                    src = smooth[y0 - half - blur + a]
+                    xs = x0 - half - blur
                     for b in range(n_grid):
-                        xx = x0 - half - blur + b
-                        acc = 0.0
-                        for k in range(2 * blur + 1):
-                            acc += smooth[yy, xx + k] * kern[k]
-                        rows[a, b] = acc
+                        rows[a, b] = 0.0
+                    for k in range(2 * blur + 1):
+                        kk = kern[k]
+                        for b in range(n_grid):
+                            rows[a, b] += src[xs + b + k] * kk
                 for a in range(n_grid):
                     for b in range(n_grid):
-                        acc = 0.0
-                        for k in range(2 * blur + 1):
-                            acc += rows[a + k, b] * kern[k]
-                        patch[a, b] = acc
+                        patch[a, b] = 0.0
+                    for k in range(2 * blur + 1):
+                        kk = kern[k]
+                        for b in range(n_grid):
+                            patch[a, b] += rows[a + k, b] * kk
             # the smoothed patch resampled at the estimate: one bilinear fraction for every pixel
             fx = x - x0
             fy = y - y0
