@@ -101,7 +101,8 @@ def _predict_from_dense(dense: np.ndarray, lo: np.ndarray, hl: np.ndarray) -> tu
         lab = hl[idx, None, :] + off[None]  # (B, N, 2)
         iu, iv = lab[..., 0] - lo[0], lab[..., 1] - lo[1]
         inside = (iu >= 0) & (iv >= 0) & (iu < span[0]) & (iv < span[1])
-        dst = np.where(inside[..., None], dense[np.clip(iu, 0, span[0] - 1), np.clip(iv, 0, span[1] - 1)], np.nan)
+        at = dense[np.minimum(np.maximum(iu, 0), span[0] - 1), np.minimum(np.maximum(iv, 0), span[1] - 1)]
+        dst = np.where(inside[..., None], at, np.nan)
         valid = np.asarray(np.isfinite(dst).all(axis=2))
         src = np.broadcast_to(off[None].astype(np.float64), lab.shape)
         # at least two distinct labels along each axis (not a single row or column)

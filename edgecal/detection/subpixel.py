@@ -26,7 +26,8 @@ SEARCH_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 12, 0.01)
 
 def subpixel_window(spacing: np.ndarray) -> np.ndarray:
     """Half-width of the refinement window for each local square size (pixels)."""
-    return np.clip(np.floor(0.5 * np.asarray(spacing)), 3, 12).astype(np.int64)
+    # np.minimum/np.maximum: the same values as np.clip (NaN too) at a third of its call overhead
+    return np.minimum(np.maximum(np.floor(0.5 * np.asarray(spacing)), 3), 12).astype(np.int64)
 
 
 # A corner on a board's outer line sees, beyond it, a square of unknown extent: the outermost squares of
@@ -471,7 +472,7 @@ def nearest_spacing(pts: np.ndarray) -> np.ndarray:
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     if len(pts) < 2:
         return np.full(len(pts), 20.0)
-    return np.clip(_nearest_distances(pts, np.argsort(pts[:, 0], kind="stable")), 4.0, 300.0)
+    return np.minimum(np.maximum(_nearest_distances(pts, np.argsort(pts[:, 0], kind="stable")), 4.0), 300.0)
 
 
 # The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, or followed by
@@ -627,5 +628,6 @@ def saddle_fit_setup(spacing: np.ndarray) -> tuple[np.ndarray, int, int, np.ndar
     """What saddle_refine fits with, for the covariance of its corners (corner_covariance repeats the fit):
     the weighted pseudo-inverse (6, (2 half + 1)^2), the fit's half-width, the extra smoothing kernel's
     half-width and its sigma per corner (N,) for the local square sizes ``spacing`` (N,) px."""
-    sigma = np.clip(_SADDLE_BLUR_PER_SPACING * np.asarray(spacing, dtype=np.float64).reshape(-1), *_SADDLE_BLUR_SIGMA)
+    sigma = np.minimum(np.maximum(_SADDLE_BLUR_PER_SPACING * np.asarray(spacing, dtype=np.float64).reshape(-1),
+                                  _SADDLE_BLUR_SIGMA[0]), _SADDLE_BLUR_SIGMA[1])
     return _SADDLE_FIT, _SADDLE_HALF, _SADDLE_BLUR_MAX, np.ascontiguousarray(sigma)
