@@ -362,18 +362,11 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
     start = np.array(pts, dtype=np.float32).reshape(-1, 2)
     if len(start) == 0:
         return start.astype(np.float64)
-    spacing = np.asarray(spacing, np.float64)
-    finite = np.isfinite(start).all(axis=1) & np.isfinite(spacing)
-    half = subpixel_window(np.where(finite, spacing, 6.0))
+    spacing = np.ascontiguousarray(np.broadcast_to(np.asarray(spacing, np.float64), (len(start),)))
     h, w = smooth.shape
-    # cornerSubPix needs the window inside the image
-    x, y = start[:, 0], start[:, 1]
-    ok = finite & (x > half + 1) & (x < w - half - 2) & (y > half + 1) & (y < h - half - 2)
-    order = np.flatnonzero(ok)
+    order, sizes = _refinement_plan(start, spacing, h, w)
     if len(order) == 0:
         return start.astype(np.float64)
-    order = order[np.argsort(half[order], kind="stable")]
-    sizes = half[order]
     block = start[order].reshape(-1, 1, 2)
     # one call per run of equal sizes (plain lists: np.r_ cost more than a small call's refinement)
     bounds = [0, *(np.flatnonzero(sizes[1:] != sizes[:-1]) + 1).tolist(), len(order)]
@@ -381,11 +374,60 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
         part = block[a:b]  # a contiguous view: cornerSubPix refines it in place
         size = int(sizes[a])
         cv2.cornerSubPix(smooth, part, (size, size), (-1, -1), criteria)
-    moved = np.linalg.norm(block[:, 0] - start[order], axis=1)
-    good = moved < (max_move_px if max_move_px is not None else np.maximum(1.5, 0.5 * sizes))
-    out = start.copy()
-    out[order[good]] = block[good, 0]
-    return out.astype(np.float64)
+    return _kept_refinements(start, block, order, sizes, -1.0 if max_move_px is None else float(max_move_px))
+
+
+@njit(cache=True, nogil=True)
+def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """The points of ``start`` (M, 2) float32 whose cornerSubPix window (subpixel_window of ``spacing``
+    (M,), of 6 px where a point or its spacing is not finite) lies inside an h x w image, sorted by window
+    half-width (stable): (their indices (K,), half-widths (K,))."""
+    m = start.shape[0]
+    half = np.empty(m, np.int64)
+    ok = np.zeros(m, np.bool_)
+    count = np.zeros(13, np.int64)
+    for i in range(m):
+        x = start[i, 0]
+        y = start[i, 1]
+        finite = math.isfinite(x) and math.isfinite(y) and math.isfinite(spacing[i])
+        hw = int(min(max(math.floor(0.5 * (spacing[i] if finite else 6.0)), 3.0), 12.0))
+        half[i] = hw
+        # cornerSubPix needs the window inside the image
+        if finite and x > hw + 1 and x < w - hw - 2 and y > hw + 1 and y < h - hw - 2:
+            ok[i] = True
+            count[hw] += 1
+    first = np.zeros(13, np.int64)
+    for hw in range(1, 13):
+        first[hw] = first[hw - 1] + count[hw - 1]
+    n = first[12] + count[12]
+    order = np.empty(n, np.int64)
+    sizes = np.empty(n, np.int64)
+    for i in range(m):
+        if ok[i]:
+            k = first[half[i]]
+            order[k] = i
+            sizes[k] = half[i]
+            first[half[i]] += 1
+    return order, sizes
+
+
+@njit(cache=True, nogil=True)
+def _kept_refinements(start: np.ndarray, block: np.ndarray, order: np.ndarray, sizes: np.ndarray,
+                      max_move: float) -> np.ndarray:
+    """``start`` (M, 2) float32 as float64 with the refined points ``block`` (K, 1, 2) of ``order`` (K,) put in
+    where they moved less than ``max_move`` px (negative: half the window, at least 1.5 px). The move is
+    measured in float32, as cornerSubPix's points are."""
+    out = start.astype(np.float64)
+    for k in range(order.shape[0]):
+        i = order[k]
+        dx = block[k, 0, 0] - start[i, 0]
+        dy = block[k, 0, 1] - start[i, 1]
+        moved = np.sqrt(dx * dx + dy * dy)
+        limit = max_move if max_move >= 0.0 else max(1.5, 0.5 * sizes[k])
+        if moved < limit:
+            out[i, 0] = block[k, 0, 0]
+            out[i, 1] = block[k, 0, 1]
+    return out
 
 
 @njit(cache=True, nogil=True)
