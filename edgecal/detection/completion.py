@@ -312,6 +312,36 @@ def _dense_at(dense: np.ndarray, nu: int, nv: int, u: int, v: int) -> tuple[floa
     return dense[u, v, 0], dense[u, v, 1]
 
 
+class _HolePredictions:
+    """_predict_from_dense for one grid's completion, each hole's prediction made once per neighbourhood.
+
+    A hole's homography uses nothing but the grid's corners within two labels of it (each hole's fit is its
+    own: the batched arithmetic and SVD are per hole), so a hole whose 5x5 neighbourhood did not change since
+    the last round predicts the same point: it is looked up by that neighbourhood's values. A fragment of
+    clutter with dozens of holes no grid corner reaches spent most of its completion refitting them.
+    """
+
+    def __init__(self) -> None:
+        self._seen: dict[bytes, tuple[float, float, float]] = {}
+
+    def predict(self, dense: np.ndarray, lo: np.ndarray, holes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(points (B, 2), spacing (B,)) of _predict_from_dense for the holes (B, 2) of ``dense`` (margin 2)."""
+        keys = []
+        new = []
+        for i, (u, v) in enumerate((holes - lo).tolist()):
+            key = b"%d,%d:" % (u + lo[0], v + lo[1]) + dense[u - 2:u + 3, v - 2:v + 3].tobytes()
+            keys.append(key)
+            if key not in self._seen:
+                new.append(i)
+        if new:
+            sel = np.array(new)
+            got_p, got_s = _predict_from_dense(dense, lo, holes[sel])
+            for i, (x, y), sp in zip(new, got_p.tolist(), got_s.tolist()):
+                self._seen[keys[i]] = (x, y, sp)
+        out = np.array([self._seen[k] for k in keys], dtype=np.float64).reshape(-1, 3)
+        return out[:, :2], out[:, 2]
+
+
 class _VerifiedPredictions:
     """verify_predictions for one grid's completion, each distinct prediction verified once.
 
@@ -368,6 +398,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
     grid = dict(grid)
     # the grid's corners get their final refinement once the board is known (SEARCH_CRITERIA here)
     verified = _VerifiedPredictions(smooth, gx, gy, params, accepted, SEARCH_CRITERIA)
+    hole_predictions = _HolePredictions()
     for _ in range(2 * max_dim + 2):
         dense, lo = dense_labels(grid)
         u0, v0 = (int(c) for c in lo + 2)
@@ -375,7 +406,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         added = False
         # Holes: each from a homography of its own neighbourhood (lens distortion is local).
         holes = np.argwhere(~np.isfinite(dense[2:-2, 2:-2, 0])) + (u0, v0)
-        hole_p, hole_s = _predict_from_dense(dense, lo, holes)
+        hole_p, hole_s = hole_predictions.predict(dense, lo, holes)
         found = np.isfinite(hole_p).all(axis=1) & np.isfinite(hole_s)
         preds = list(hole_p[found])
         keys = [(int(u), int(v)) for u, v in holes[found]]
