@@ -32,31 +32,152 @@ from edgecal.detection.subpixel import FINAL_CRITERIA, SEARCH_CRITERIA, nearest_
 BEYOND_STEP_FRACTIONS = (0.2, 0.35, 0.5)
 
 
-def _homographies(src: np.ndarray, dst: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Least-squares homographies label -> image for a batch of point sets, by one batched SVD.
+@njit(cache=True, nogil=True, inline="always")
+def _pairwise_sum(a: np.ndarray) -> float:
+    """numpy's add.reduce of a short contiguous float64 row (its pairwise summation, exactly, below 128
+    elements): the same sums as the numpy arithmetic these kernels replaced."""
+    n = a.shape[0]
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    r = a[:8].copy()
+    i = 8
+    while i < n - (n % 8):
+        for j in range(8):
+            r[j] += a[i + j]
+        i += 8
+    res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+    while i < n:
+        res += a[i]
+        i += 1
+    return res
 
-    src (B, N, 2) labels relative to the predicted point, dst (B, N, 2) pixels, valid (B, N) bool; each
-    set is normalised (centroid, mean distance) for conditioning, as Hartley's DLT does. Returns (B, 3, 3).
+
+@njit(cache=True, nogil=True)
+def _hole_systems(dense: np.ndarray, lo_u: int, lo_v: int, holes: np.ndarray, off: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The DLT systems of the holes (B, 2) whose neighbours at the label offsets ``off`` (N, 2) hold at least
+    4 corners of ``dense`` (dense_labels, label (lo_u, lo_v) at [0, 0]) on two rows and two columns.
+
+    Returns (which holes (K,), their systems (K, 2N, 9), the neighbours' centroids (K, 2) and scales (K,)):
+    each set normalised (centroid, mean distance sqrt(2)) for conditioning, as Hartley's DLT does; a missing
+    neighbour contributes zero rows (no effect on the null space). The arithmetic is that of the numpy
+    expressions it replaced, in the same order (identical systems).
     """
-    w = valid.astype(np.float64)[..., None]
-    n = np.maximum(w.sum(axis=1), 1.0)
-    mean = (dst * w).sum(axis=1) / n
-    scale = np.sqrt(2.0) / np.maximum((np.linalg.norm(dst - mean[:, None], axis=2) * w[..., 0]).sum(axis=1)
-                                      / n[:, 0], 1e-9)
-    d = (dst - mean[:, None]) * scale[:, None, None]
-    x, y = src[..., 0], src[..., 1]
-    one, zero = np.ones_like(x), np.zeros_like(x)
-    # two rows per correspondence; an invalid one contributes zero rows (no effect on the null space)
-    r1 = np.stack([x, y, one, zero, zero, zero, -d[..., 0] * x, -d[..., 0] * y, -d[..., 0]], axis=2)
-    r2 = np.stack([zero, zero, zero, x, y, one, -d[..., 1] * x, -d[..., 1] * y, -d[..., 1]], axis=2)
-    a = np.concatenate([r1, r2], axis=1) * np.concatenate([w, w], axis=1)
-    h = np.linalg.svd(a)[2][:, -1].reshape(-1, 3, 3)
-    # undo the normalisation: H = T^-1 Hn
-    t_inv = np.zeros_like(h)
-    t_inv[:, 0, 0] = t_inv[:, 1, 1] = 1.0 / scale
-    t_inv[:, 0, 2], t_inv[:, 1, 2] = mean[:, 0], mean[:, 1]
-    t_inv[:, 2, 2] = 1.0
-    return t_inv @ h
+    nu, nv = dense.shape[0], dense.shape[1]
+    n_off = off.shape[0]
+    b_all = holes.shape[0]
+    which = np.empty(b_all, np.int64)
+    systems = np.zeros((b_all, 2 * n_off, 9))
+    means = np.zeros((b_all, 2))
+    scales = np.zeros(b_all)
+    dst = np.empty((n_off, 2))
+    w = np.empty(n_off)
+    dist = np.empty(n_off)
+    k = 0
+    for b in range(b_all):
+        count = 0
+        lo0 = np.inf
+        hi0 = -np.inf
+        lo1 = np.inf
+        hi1 = -np.inf
+        for n in range(n_off):
+            u = holes[b, 0] + off[n, 0] - lo_u
+            v = holes[b, 1] + off[n, 1] - lo_v
+            x = np.nan
+            y = np.nan
+            if 0 <= u < nu and 0 <= v < nv:
+                x = dense[u, v, 0]
+                y = dense[u, v, 1]
+            if math.isfinite(x) and math.isfinite(y):
+                dst[n, 0] = x
+                dst[n, 1] = y
+                w[n] = 1.0
+                count += 1
+                lo0 = min(lo0, float(off[n, 0]))
+                hi0 = max(hi0, float(off[n, 0]))
+                lo1 = min(lo1, float(off[n, 1]))
+                hi1 = max(hi1, float(off[n, 1]))
+            else:
+                dst[n, 0] = 0.0  # np.nan_to_num
+                dst[n, 1] = 0.0
+                w[n] = 0.0
+        # at least 4 corners, on two distinct labels along each axis (not a single row or column)
+        if count < 4 or not (lo0 < hi0 and lo1 < hi1):
+            continue
+        total = max(float(count), 1.0)
+        m0 = dst[0, 0] * w[0]
+        m1 = dst[0, 1] * w[0]
+        for n in range(1, n_off):
+            m0 += dst[n, 0] * w[n]
+            m1 += dst[n, 1] * w[n]
+        m0 = m0 / total
+        m1 = m1 / total
+        for n in range(n_off):
+            dx = dst[n, 0] - m0
+            dy = dst[n, 1] - m1
+            dist[n] = math.sqrt(dx * dx + dy * dy) * w[n]
+        scale = math.sqrt(2.0) / max(_pairwise_sum(dist) / total, 1e-9)
+        for n in range(n_off):
+            d0 = (dst[n, 0] - m0) * scale
+            d1 = (dst[n, 1] - m1) * scale
+            x = float(off[n, 0])
+            y = float(off[n, 1])
+            wn = w[n]
+            r1 = systems[k, n]
+            r2 = systems[k, n_off + n]
+            r1[0] = x * wn
+            r1[1] = y * wn
+            r1[2] = 1.0 * wn
+            r1[3] = 0.0 * wn
+            r1[4] = 0.0 * wn
+            r1[5] = 0.0 * wn
+            r1[6] = -d0 * x * wn
+            r1[7] = -d0 * y * wn
+            r1[8] = -d0 * wn
+            r2[0] = 0.0 * wn
+            r2[1] = 0.0 * wn
+            r2[2] = 0.0 * wn
+            r2[3] = x * wn
+            r2[4] = y * wn
+            r2[5] = 1.0 * wn
+            r2[6] = -d1 * x * wn
+            r2[7] = -d1 * y * wn
+            r2[8] = -d1 * wn
+        which[k] = b
+        means[k, 0] = m0
+        means[k, 1] = m1
+        scales[k] = scale
+        k += 1
+    return which[:k], systems[:k], means[:k], scales[:k]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _probe_points(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The homographies' images q (K, 5, 3) of the hole and its four diagonal neighbours: the hole's point
+    (K, 2) and the distance to the nearest of the four (K,) (inf or NaN on a homography's horizon)."""
+    k_n = q.shape[0]
+    pts = np.empty((k_n, 2))
+    near = np.empty(k_n)
+    for k in range(k_n):
+        x0 = q[k, 0, 0] / q[k, 0, 2]
+        y0 = q[k, 0, 1] / q[k, 0, 2]
+        pts[k, 0] = x0
+        pts[k, 1] = y0
+        best = np.inf
+        nan = False
+        for j in range(1, 5):
+            dx = q[k, j, 0] / q[k, j, 2] - x0
+            dy = q[k, j, 1] / q[k, j, 2] - y0
+            d = math.sqrt(dx * dx + dy * dy)
+            if math.isnan(d):
+                nan = True
+            elif d < best:
+                best = d
+        near[k] = np.nan if nan else best
+    return pts, near
 
 
 def dense_labels(grid: dict[tuple[int, int], np.ndarray], margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
@@ -89,36 +210,27 @@ def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int
 def _predict_from_dense(dense: np.ndarray, lo: np.ndarray, hl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """predict_holes on the grid's dense_labels (margin 2) for the labels ``hl`` (B, 2): points (B, 2) and
     nearest-corner distances (B,), NaN (or inf) where a hole has no usable neighbourhood."""
-    span = np.array(dense.shape[:2])
     out_p = np.full((len(hl), 2), np.nan)
     out_s = np.full(len(hl), np.nan)
     todo = np.ones(len(hl), dtype=bool)
     for reach in (1, 2):
-        off = _RING_OFFSETS[reach]
         idx = np.nonzero(todo)[0]
         if len(idx) == 0:
             break
-        lab = hl[idx, None, :] + off[None]  # (B, N, 2)
-        iu, iv = lab[..., 0] - lo[0], lab[..., 1] - lo[1]
-        inside = (iu >= 0) & (iv >= 0) & (iu < span[0]) & (iv < span[1])
-        at = dense[np.minimum(np.maximum(iu, 0), span[0] - 1), np.minimum(np.maximum(iv, 0), span[1] - 1)]
-        dst = np.where(inside[..., None], at, np.nan)
-        valid = np.asarray(np.isfinite(dst).all(axis=2))
-        src = np.broadcast_to(off[None].astype(np.float64), lab.shape)
-        # at least two distinct labels along each axis (not a single row or column)
-        spread = (np.where(valid[..., None], src, np.inf).min(axis=1)
-                  < np.where(valid[..., None], src, -np.inf).max(axis=1)).all(axis=1)
-        usable = (valid.sum(axis=1) >= 4) & spread
-        if not usable.any():
+        which, systems, means, scales = _hole_systems(dense, int(lo[0]), int(lo[1]),
+                                                      np.ascontiguousarray(hl[idx]), _RING_OFFSETS[reach])
+        if not len(which):
             continue
-        b = np.nonzero(usable)[0]
-        h = _homographies(src[b], np.nan_to_num(dst[b]), valid[b])
-        q = np.einsum("bij,kj->bki", h, _HOMOGRAPHY_PROBE)
-        with np.errstate(divide="ignore", invalid="ignore"):  # a point on the horizon: inf, left out
-            q = q[..., :2] / q[..., 2:3]
-        out_p[idx[b]] = q[:, 0]
-        out_s[idx[b]] = np.linalg.norm(q[:, 1:] - q[:, :1], axis=2).min(axis=1)
-        todo[idx[b]] = False
+        h = np.linalg.svd(systems)[2][:, -1].reshape(-1, 3, 3)
+        # undo the normalisation: H = T^-1 Hn
+        t_inv = np.zeros_like(h)
+        t_inv[:, 0, 0] = t_inv[:, 1, 1] = 1.0 / scales
+        t_inv[:, 0, 2], t_inv[:, 1, 2] = means[:, 0], means[:, 1]
+        t_inv[:, 2, 2] = 1.0
+        q = np.einsum("bij,kj->bki", t_inv @ h, _HOMOGRAPHY_PROBE)
+        b = idx[which]
+        out_p[b], out_s[b] = _probe_points(np.ascontiguousarray(q))
+        todo[b] = False
     return out_p, out_s
 
 
