@@ -429,7 +429,7 @@ def chess_response(img: np.ndarray, dx: np.ndarray, dy: np.ndarray, out: np.ndar
             res[i] = sr - dr - np.float32(16.0) * abs(tot * np.float32(1.0 / 16.0) - centre)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _chess_at(flat: np.ndarray, i: int, off: np.ndarray, w: int) -> float:
     """ChESS response at flat pixel index ``i`` for the ring offsets ``off`` (see chess_response)."""
     sr = 0.0
@@ -472,12 +472,15 @@ def chess_filter(img: np.ndarray, pts: np.ndarray, rings: np.ndarray, thresholds
             if cx < r or cy < r or cx >= w - r or cy >= h - r:
                 keep[m] = True
                 break
-            best = -1e30
+            # some pixel of the 3x3 above the threshold (the first one found is enough)
             for yy in range(cy - 1, cy + 2):
                 for xx in range(cx - 1, cx + 2):
-                    best = max(best, _chess_at(flat, yy * w + xx, offs[k], w))
-            if best > thresholds[k]:
-                keep[m] = True
+                    if _chess_at(flat, yy * w + xx, offs[k], w) > thresholds[k]:
+                        keep[m] = True
+                        break
+                if keep[m]:
+                    break
+            if keep[m]:
                 break
     return keep
 
