@@ -348,7 +348,6 @@ def saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray,
                       fit: np.ndarray, half: int, blur_half: int, spacing: np.ndarray,
                       steps: np.ndarray) -> np.ndarray:
     """The saddle fit (subpixel.saddle_refine) at each corner, and how raw image noise reaches it (N, N_SADDLE);
-    fit_corr: _fit_correlations of ``fit``.
     see _saddle_statistics (one numba pass over all corners)."""
     return _saddle_statistics(smooth, corners, blur, gauss, fit, half, blur_half, spacing, steps,
                               _fit_correlations(np.ascontiguousarray(fit, dtype=np.float64), 2 * half + 1))
