@@ -209,7 +209,8 @@ def _smooth_energy(v0: np.ndarray, v1: np.ndarray, p: int, g: np.ndarray, tmp0: 
 
 
 @njit(cache=True, nogil=True)
-def window_statistics(smooth: np.ndarray, corners: np.ndarray, half: np.ndarray, gauss: np.ndarray) -> np.ndarray:
+def window_statistics(smooth: np.ndarray, corners: np.ndarray, half: np.ndarray, gauss: np.ndarray,
+                      noise: np.ndarray) -> np.ndarray:
     """Statistics of each corner's refinement window (N, N_STATS), columns W_*.
 
     smooth: (H, W) float32, the image the refinement ran on; corners: (N, 2) float64 pixels; half: (N,)
@@ -223,6 +224,8 @@ def window_statistics(smooth: np.ndarray, corners: np.ndarray, half: np.ndarray,
     the differences: the smoothing correlates neighbouring gradients, which a per-sample variance misses.
     Both gradient kernels are the Gaussian times a central difference, so sum_i M_i dg_i is the Gaussian
     scattered over v = (central differences scattered over M's columns): one smoothing per component.
+    noise: (N,) bool, the corners that need B (the others, whose covariance the saddle fit gives, get 0:
+    B is most of this kernel's cost).
     """
     h, w = smooth.shape
     n = corners.shape[0]
@@ -269,10 +272,12 @@ def window_statistics(smooth: np.ndarray, corners: np.ndarray, half: np.ndarray,
         inv = 1.0 / (hw * hw)
         for a in range(p):
             ex[a] = math.exp(-float((a - hw) * (a - hw)) * inv)     # cornerSubPix's weights are separable
-        for a in range(p + 2):
-            for b in range(p + 2):
-                v0[a, b] = 0.0
-                v1[a, b] = 0.0
+        want_b = noise[i]
+        if want_b:
+            for a in range(p + 2):
+                for b in range(p + 2):
+                    v0[a, b] = 0.0
+                    v1[a, b] = 0.0
         for a in range(p):
             dy = a - hw
             for b in range(p):
@@ -286,20 +291,21 @@ def window_statistics(smooth: np.ndarray, corners: np.ndarray, half: np.ndarray,
                 axy += wt * gx * gy
                 ayy += wt * gy * gy
                 gr = gx * dx + gy * dy
-                # q solves sum w g g^T (q - p) = 0; the sign of r drops out of B. M's columns go through
-                # the central differences (the same kernel (-1/2, 0, 1/2) along x and along y) into v.
-                m00 = wt * (gx * dx + gr)
-                m01 = wt * gx * dy
-                m10 = wt * gy * dx
-                m11 = wt * (gy * dy + gr)
-                v0[a + 1, b] -= 0.5 * m00
-                v0[a + 1, b + 2] += 0.5 * m00
-                v0[a, b + 1] -= 0.5 * m01
-                v0[a + 2, b + 1] += 0.5 * m01
-                v1[a + 1, b] -= 0.5 * m10
-                v1[a + 1, b + 2] += 0.5 * m10
-                v1[a, b + 1] -= 0.5 * m11
-                v1[a + 2, b + 1] += 0.5 * m11
+                if want_b:
+                    # q solves sum w g g^T (q - p) = 0; the sign of r drops out of B. M's columns go through
+                    # the central differences (the same kernel (-1/2, 0, 1/2) along x and along y) into v.
+                    m00 = wt * (gx * dx + gr)
+                    m01 = wt * gx * dy
+                    m10 = wt * gy * dx
+                    m11 = wt * (gy * dy + gr)
+                    v0[a + 1, b] -= 0.5 * m00
+                    v0[a + 1, b + 2] += 0.5 * m00
+                    v0[a, b + 1] -= 0.5 * m01
+                    v0[a + 2, b + 1] += 0.5 * m01
+                    v1[a + 1, b] -= 0.5 * m10
+                    v1[a + 1, b + 2] += 0.5 * m10
+                    v1[a, b + 1] -= 0.5 * m11
+                    v1[a + 2, b + 1] += 0.5 * m11
                 mx += wt * gx
                 my += wt * gy
                 sw += wt
@@ -317,7 +323,9 @@ def window_statistics(smooth: np.ndarray, corners: np.ndarray, half: np.ndarray,
                 else:
                     lo += wts[a, b] * v
                     wlo += wts[a, b]
-        bxx, bxy, byy = _smooth_energy(v0, v1, p + 2, gauss, tmp0, tmp1, u0, u1)
+        bxx = bxy = byy = 0.0
+        if want_b:
+            bxx, bxy, byy = _smooth_energy(v0, v1, p + 2, gauss, tmp0, tmp1, u0, u1)
         out[i, W_AXX] = axx
         out[i, W_AXY] = axy
         out[i, W_AYY] = ayy
@@ -631,13 +639,6 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     half = subpixel_window(spacing)
     smooth = np.ascontiguousarray(smooth, dtype=np.float32)
     gauss = noise_kernel(smoothing_sigma)
-    st = window_statistics(smooth, corners, half, gauss)
-    noise2 = (covariance_noise_sigma(grey) if noise_sigma is None else noise_sigma) ** 2
-    a = st[:, W_AXX] * st[:, W_AYY] - st[:, W_AXY] ** 2
-    tr = st[:, W_AXX] + st[:, W_AYY]
-    ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)
-    cov = _cornersubpix_covariance(st, half, noise2, np.where(ok, a, 1.0))
-    shared_fraction = np.full(n, SHARED_FRACTION["cornersubpix"])
     if refiner == "saddle":
         fit, fit_half, blur_half, blur = saddle_fit_setup(spacing)
         if steps is None:
@@ -645,6 +646,17 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         sd = saddle_statistics(smooth, corners, blur, gauss, np.ascontiguousarray(fit), fit_half, blur_half,
                                np.ascontiguousarray(spacing, dtype=np.float64),
                                np.ascontiguousarray(steps, dtype=np.float64).reshape(n, 2, 2))
+        # cornerSubPix's noise term only where the saddle fit gives no covariance
+        st = window_statistics(smooth, corners, half, gauss, ~(sd[:, S_OK] > 0))
+    else:
+        st = window_statistics(smooth, corners, half, gauss, np.ones(n, dtype=np.bool_))
+    noise2 = (covariance_noise_sigma(grey) if noise_sigma is None else noise_sigma) ** 2
+    a = st[:, W_AXX] * st[:, W_AYY] - st[:, W_AXY] ** 2
+    tr = st[:, W_AXX] + st[:, W_AYY]
+    ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)
+    cov = _cornersubpix_covariance(st, half, noise2, np.where(ok, a, 1.0))
+    shared_fraction = np.full(n, SHARED_FRACTION["cornersubpix"])
+    if refiner == "saddle":
         fitted = (sd[:, S_OK] > 0) & (st[:, W_INSIDE] > 0)
         if boards is not None:
             sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
