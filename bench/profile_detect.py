@@ -70,6 +70,8 @@ STAGES = (
     ("edgecal.detection.board_corners", "nearest_spacing", "spacing"),
     ("edgecal.detection.board_corners", "saddle_refine", "saddle"),
     ("edgecal.detection.board_corners", "refine_rim", "rim"),
+    ("edgecal.detection.board_corners", "xjunction_refine", "xjunction"),
+    ("edgecal.detection.board_corners", "xjunction_radius", "xjunction"),
     ("edgecal.detection.subpixel", "refine_corners", "subpixel"),
     ("edgecal.detection.detector", "resettle_slid_corners", "resettle"),
 )

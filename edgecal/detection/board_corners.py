@@ -1,5 +1,6 @@
-"""A found board's final corners: refined once more (cornerSubPix, the rim again, the saddle fit) and
-corners that slid along an edge put back where their neighbours say."""
+"""A found board's final corners: refined once more (cornerSubPix, the rim again, the saddle fit), corners
+that slid along an edge put back where their neighbours say, and an accepted board's corners polished by the
+X-junction fit."""
 
 from __future__ import annotations
 
@@ -10,7 +11,15 @@ from numba import njit
 
 from edgecal.detection.completion import predict_holes
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.subpixel import nearest_spacing, refine_corners, refine_rim, saddle_refine
+from edgecal.detection.subpixel import (
+    grid_line_angles,
+    nearest_spacing,
+    refine_corners,
+    refine_rim,
+    saddle_refine,
+    xjunction_radius,
+    xjunction_refine,
+)
 
 # A final corner further than this fraction of a square from where its neighbours put it slid along an edge.
 SLID_FRACTION = 0.2
@@ -28,7 +37,23 @@ def final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: Detect
     """
     spacing = nearest_spacing(xy) if spacing is None else spacing
     xy, window = refine_rim(smooth, refine_corners(smooth, xy, spacing), ids, spacing)
-    return saddle_refine(smooth, xy, window) if p.subpixel_refiner == "saddle" else xy
+    return xy if p.subpixel_refiner == "cornersubpix" else saddle_refine(smooth, xy, window)
+
+
+def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams
+                   ) -> np.ndarray:
+    """An accepted board's corners ``xy`` (N, 2; ``ids`` (N, 2): col, row) from final_corners, moved by the
+    X-junction fit on the raw image ``grey`` (refiner "xjunction"; unchanged otherwise), each in its disc
+    (xjunction_radius on ``smooth``) from the grid's line directions there.
+
+    Only the corners a detection reports: the checks that accept a board (its regularity, whether it is
+    part of a larger grid) keep working on final_corners' corners, so the X-junction fit changes where
+    corners are, never which boards are found (on a box whose faces meet, corners moved by a few
+    hundredths of a pixel let completion grow a board by a false line along the next face).
+    """
+    if p.subpixel_refiner != "xjunction" or not len(xy):
+        return xy
+    return xjunction_refine(grey, xy, grid_line_angles(xy, ids), xjunction_radius(smooth, xy, ids))
 
 
 def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:

@@ -16,7 +16,7 @@ import math
 import cv2
 import numpy as np
 
-from edgecal.detection.board_corners import final_corners, resettle_slid_corners
+from edgecal.detection.board_corners import final_corners, polish_corners, resettle_slid_corners
 from edgecal.detection.candidates import (
     chess_filter,
     chess_ring,
@@ -171,8 +171,11 @@ def add_covariances(detections: list[Detection], level: Level, p: DetectorParams
     noise = covariance_noise_sigma(level.image)
     steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
     boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
+    # The X-junction fit starts from the saddle fit's corners and moves them by a few hundredths of a pixel:
+    # they keep the saddle fit's covariance, conservative for them (their errors are 0.5-0.9 of the saddle's).
+    refiner = "saddle" if p.subpixel_refiner == "xjunction" else p.subpixel_refiner
     cc = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
-                           refiner=p.subpixel_refiner, steps=steps, boards=boards)
+                           refiner=refiner, steps=steps, boards=boards)
     start = 0
     for d in detections:
         end = start + len(d.corners)
@@ -274,6 +277,7 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
                               level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
         if len(grown) > len(xy):
             return None
+        xy = polish_corners(level.grey, level.smooth, xy, det.ids, p)
         det.corners = xy + level.origin
         det.quality = _corner_quality(level, xy, p)
     return (DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
@@ -399,6 +403,8 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
+        if not provisional:  # (a provisional board's corners are refined again at full resolution)
+            xy = polish_corners(level.grey, smooth, xy, ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows)))

@@ -62,8 +62,10 @@ class DetectorParams:
     pyramid_min_size_px: int = _count(400, "images at least this tall and wide are searched at half size first")
     bloom_saturated_fraction: float = _fraction(0.10, "a board missing and this share saturated: search again "
                                                       "eroded (bloom)")
-    subpixel_refiner: str = setting("saddle", doc="final corners: cornerSubPix then a saddle fit (saddle), or "
-                                                  "cornerSubPix alone", choices=REFINERS)
+    subpixel_refiner: str = setting("xjunction", doc="final corners: cornerSubPix, a saddle fit, then a blurred "
+                                                     "X-junction fitted to the raw image (xjunction); cornerSubPix "
+                                                     "and the saddle fit (saddle); or cornerSubPix alone",
+                                    choices=REFINERS)
 
 
 DEFAULT_PARAMS_FILE_HINT = "defaults and their meaning: configs/detector.yaml"

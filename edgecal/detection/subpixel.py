@@ -1,5 +1,5 @@
-"""Step 5: sub-pixel localisation of accepted corners (cv2.cornerSubPix while searching; a saddle fit for
-the final corners, see saddle_refine and REFINERS).
+"""Step 5: sub-pixel localisation of accepted corners (cv2.cornerSubPix while searching; a saddle fit and an
+X-junction model fit for the final corners, see saddle_refine, xjunction_refine and REFINERS).
 
 cv2.cornerSubPix (gradient orthogonality: every gradient in the window is perpendicular to the vector from
 the corner) is accurate to ~0.01 px on clean corners when its window holds only this corner's two edges,
@@ -517,9 +517,11 @@ def nearest_spacing(pts: np.ndarray) -> np.ndarray:
     return np.minimum(np.maximum(_nearest_distances(pts, np.argsort(pts[:, 0], kind="stable")), 4.0), 300.0)
 
 
-# The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, or followed by
-# the saddle fit (the default: more accurate on every rendered set, see saddle_refine).
-REFINERS = ("cornersubpix", "saddle")
+# The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, followed by the
+# saddle fit (more accurate on every rendered set, see saddle_refine), or followed by the saddle fit and the
+# X-junction model fit from its result (the default: more accurate again on every rendered set, see
+# xjunction_refine).
+REFINERS = ("cornersubpix", "saddle", "xjunction")
 
 # Saddle fit: a quadratic surface fitted to the image around each corner, the corner at its saddle point.
 # The fit window (half-width 5 px, Gaussian weights sigma 3 px) reaches past the corner's own blur: an
@@ -673,3 +675,282 @@ def saddle_fit_setup(spacing: np.ndarray) -> tuple[np.ndarray, int, int, np.ndar
     sigma = np.minimum(np.maximum(_SADDLE_BLUR_PER_SPACING * np.asarray(spacing, dtype=np.float64).reshape(-1),
                                   _SADDLE_BLUR_SIGMA[0]), _SADDLE_BLUR_SIGMA[1])
     return _SADDLE_FIT, _SADDLE_HALF, _SADDLE_BLUR_MAX, np.ascontiguousarray(sigma)
+
+
+# X-junction model fit: the image around a corner is fitted by what a blurred X-junction looks like: two
+# straight lines through the corner with a step across each, blurred by a Gaussian of s px and integrated over
+# a pixel (_edge_profile, F), the image m + c F(d1) F(d2) (d1, d2 signed distances to the lines; 7 parameters:
+# the corner, the lines' angles, s, the level m and the contrast c), by Gauss-Newton least squares on the raw
+# image in a disc of _XJ_RADIUS_PER_SPACING x the nearest-corner distance (_XJ_RADIUS_PX). The saddle fit's
+# quadratic only holds within about the blur of a corner, so its fit is 5 px and smoothed; this model holds
+# out to the next edges, so its disc takes every pixel that says where the two edges run (~4x the saddle
+# fit's pixels: the noise averages out) and nothing is resampled or smoothed (no pixel locking from the
+# resampling, no noise correlated by smoothing). The model is point-symmetric about the corner like the true
+# blurred junction (also its gamma-mapped and non-orthogonal versions, which it does not describe exactly),
+# so what it misses does not move the corner in a disc centred there. No light-gradient terms: they are odd
+# like a shift and, fitted, doubled the corner's noise (8 px squares, blur 1.9: 0.044 -> 0.069 px RMS).
+# Measured from the saddle fit's corners against them (the ../shared synthetic sets and bench/detect.py's
+# renders; disc radius 0.5/0.6/0.7 x the square size, up to 8/10/12/15/20/30 px, swept): planar 0.0236 ->
+# 0.0120 px RMS, multi 0.0296 -> 0.0225, hard 0.168 -> 0.149, box_stereo 0.0265 -> 0.0145, clean renders
+# 0.0043 -> 0.0033, every scale from 8 to 150 px lower (0.035 -> 0.029 at 8 px, 0.028 -> 0.016 at 150 px);
+# discs beyond 12 px lose on 60-150 px squares (the lens bends the lines, the light changes). A plain erf
+# step (no pixel width) gave planar 0.0157 and left sharp edges along a pixel axis locked to it (0.07 px).
+_XJ_RADIUS_PER_SPACING = 0.6
+_XJ_RADIUS_PX = (3.0, 12.0)
+_XJ_ITERATIONS = 10
+# A step this small in x and y ends the iterations (and is taken): from the saddle fit's corners a second step
+# of under 0.02 px leaves a third below ~1e-3 px (the same RMS on every set as 1e-3 px, ~1/3 less time).
+_XJ_CONVERGED_PX = 0.02
+_XJ_MIN_BLUR_PX = 0.05  # the blur is kept above this (the edge profile's pixel integral stays smooth)
+_XJ_FLAT_BLURS = 5.5  # beyond this many blurs (and half a pixel) from its line a step is flat
+_SQRT2 = math.sqrt(2.0)
+_SQRT_2_OVER_PI = math.sqrt(2.0 / math.pi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _erf(u: float, gauss: float) -> float:
+    """erf(u) given exp(-u^2), which the fit needs anyway (Abramowitz and Stegun 7.1.26, error < 1.5e-7 of the
+    contrast: well below a grey level; math.erf would cost a third of the fit)."""
+    t = 1.0 / (1.0 + 0.3275911 * abs(u))
+    v = 1.0 - t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429)))) * gauss
+    return v if u >= 0.0 else -v
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _edge_profile(d: float, s: float, inv: float) -> tuple[float, float, float]:
+    """A unit step (-1 .. 1) across a line, blurred by a Gaussian of ``s`` px and integrated over a pixel across
+    the line, at signed distance ``d`` px from it (``inv`` = 1 / (sqrt2 s)); and its derivatives by d and s.
+
+    The mean of erf(t / (sqrt2 s)) over t in d -+ 1/2: with G(t) = t erf(t / (sqrt2 s)) + s sqrt(2/pi)
+    exp(-t^2 / (2 s^2)) (its antiderivative), G(d + 1/2) - G(d - 1/2). Without the pixel's width a sharp
+    edge (blur ~0.3 px) along a pixel axis is no erf: such corners were locked to the pixel grid (0.07 px).
+    """
+    if abs(d) > 0.5 + _XJ_FLAT_BLURS * s:  # the step's plateau (to ~1e-7 of the contrast): no exp needed
+        return (1.0 if d > 0.0 else -1.0), 0.0, 0.0
+    a = (d + 0.5) * inv
+    b = (d - 0.5) * inv
+    ga = math.exp(-a * a)
+    gb = math.exp(-b * b)
+    ea = _erf(a, ga)
+    eb = _erf(b, gb)
+    return ((d + 0.5) * ea - (d - 0.5) * eb + s * _SQRT_2_OVER_PI * (ga - gb), ea - eb, _SQRT_2_OVER_PI * (ga - gb))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _xj_sign(x0: float, y0: float, t1: float, t2: float, x: float, y: float) -> float:
+    """The sign of the X-junction pattern at (x, y): +1 where both line distances have the same sign."""
+    d1 = -(x - x0) * math.sin(t1) + (y - y0) * math.cos(t1)
+    d2 = -(x - x0) * math.sin(t2) + (y - y0) * math.cos(t2)
+    return 1.0 if d1 * d2 >= 0.0 else -1.0
+
+
+# fast maths without assuming finite values: the NaN checks of a failed solve must stay
+@njit(cache=True, nogil=True, fastmath={"contract", "afn", "reassoc", "arcp", "nsz"})
+def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray, iterations: int,
+                      max_move: float, converged: float) -> np.ndarray:
+    """xjunction_refine for all corners in one pass (see there): ``img`` (H, W) the raw image, ``pts`` (M, 2)
+    the starts, ``angles`` (M, 2) the two lines' directions there (radians), ``radius`` (M,) px the disc.
+    A corner keeps its start when its disc is below _XJ_RADIUS_PX or leaves the image, the fit does not
+    converge in ``iterations`` or moves it further than ``max_move`` px."""
+    h, w = img.shape
+    m = pts.shape[0]
+    out = pts.copy()
+    r_max = int(math.ceil(radius.max() + 0.5)) if m else 0
+    px = np.empty((2 * r_max + 1) ** 2)
+    py = np.empty_like(px)
+    pv = np.empty_like(px)
+    pw = np.empty_like(px)
+    jtj = np.empty((7, 7))
+    jtr = np.empty(7)
+    jac = np.empty(7)
+    blur = 1.0  # the blur found at the last corner (one board's corners share their blur): the next one's start
+    for i in range(m):
+        x = pts[i, 0]
+        y = pts[i, 1]
+        rad = radius[i]
+        if not rad >= _XJ_RADIUS_PX[0]:
+            continue
+        r = int(math.ceil(rad + 0.5))
+        xi = int(math.floor(x + 0.5))
+        yi = int(math.floor(y + 0.5))
+        if xi - r < 0 or yi - r < 0 or xi + r >= w or yi + r >= h:
+            continue
+        # the disc, its rim pixels weighted by how much of them it covers (a disc that moves smoothly with
+        # its centre, not one that jumps by whole pixels)
+        n = 0
+        outer = (rad + 0.5) * (rad + 0.5)
+        inner = max(rad - 0.5, 0.0) ** 2
+        for yy in range(yi - r, yi + r + 1):
+            for xx in range(xi - r, xi + r + 1):
+                d2 = (xx - x) * (xx - x) + (yy - y) * (yy - y)
+                if d2 >= outer:
+                    continue
+                px[n] = xx
+                py[n] = yy
+                pv[n] = img[yy, xx]
+                pw[n] = 1.0 if d2 <= inner else rad + 0.5 - math.sqrt(d2)
+                n += 1
+        t1 = angles[i, 0]
+        t2 = angles[i, 1]
+        # level and contrast from the pixels half way out in the four squares (along the lines' bisectors)
+        level = 0.0
+        contrast = 0.0
+        for q in range(4):
+            t = 0.5 * (t1 + t2) + 0.5 * math.pi * q
+            qx = int(math.floor(x + 0.5 * rad * math.cos(t) + 0.5))
+            qy = int(math.floor(y + 0.5 * rad * math.sin(t) + 0.5))
+            level += 0.25 * img[qy, qx]
+            contrast += 0.25 * img[qy, qx] * _xj_sign(x, y, t1, t2, qx, qy)
+        if contrast == 0.0:
+            continue
+        p = np.array([x, y, t1, t2, blur, level, contrast])
+        prev = p.copy()
+        prev_cost = np.inf
+        damping = 1e-4
+        done = False
+        for _ in range(iterations):
+            s1, c1 = math.sin(p[2]), math.cos(p[2])
+            s2, c2 = math.sin(p[3]), math.cos(p[3])
+            s = p[4]
+            c = p[6]
+            inv = 1.0 / (_SQRT2 * s)
+            cost = 0.0
+            jtj[:] = 0.0
+            jtr[:] = 0.0
+            for k in range(n):
+                dx = px[k] - p[0]
+                dy = py[k] - p[1]
+                d1 = -dx * s1 + dy * c1
+                d2 = -dx * s2 + dy * c2
+                f1, f1d, f1s = _edge_profile(d1, s, inv)
+                f2, f2d, f2s = _edge_profile(d2, s, inv)
+                g1 = c * f1d
+                g2 = c * f2d
+                res = p[5] + c * f1 * f2 - pv[k]
+                jac[0] = g1 * s1 * f2 + f1 * g2 * s2
+                jac[1] = -(g1 * c1 * f2 + f1 * g2 * c2)
+                jac[2] = -g1 * (dx * c1 + dy * s1) * f2
+                jac[3] = -f1 * g2 * (dx * c2 + dy * s2)
+                jac[4] = c * (f1s * f2 + f1 * f2s)
+                jac[5] = 1.0
+                jac[6] = f1 * f2
+                wk = pw[k]
+                cost += wk * res * res
+                for a in range(7):
+                    wa = wk * jac[a]
+                    jtr[a] += wa * res
+                    for b in range(a, 7):
+                        jtj[a, b] += wa * jac[b]
+            if cost > prev_cost:  # the last step overshot: go half way back and damp
+                p = prev + 0.5 * (p - prev)
+                damping *= 10.0
+                continue
+            prev[:] = p
+            prev_cost = cost
+            for a in range(7):
+                for b in range(a):
+                    jtj[a, b] = jtj[b, a]
+                jtj[a, a] *= 1.0 + damping
+                jtj[a, a] += 1e-12
+            step = _solve_spd(jtj, jtr)
+            p -= step
+            p[4] = max(p[4], _XJ_MIN_BLUR_PX)
+            damping = max(0.3 * damping, 1e-6)
+            if not (abs(step[0]) >= converged or abs(step[1]) >= converged):  # (NaN ends it too)
+                done = True
+                break
+        if done and math.isfinite(p[0]) and math.isfinite(p[1]) and math.hypot(p[0] - x, p[1] - y) <= max_move:
+            out[i, 0] = p[0]
+            out[i, 1] = p[1]
+            blur = p[4]
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """x with a x = b for a symmetric positive-definite (n, n) ``a`` (Cholesky, in place on ``a``): the fit's
+    damped normal equations, 7x7, where LAPACK's call costs more than the solve."""
+    n = a.shape[0]
+    for j in range(n):
+        d = a[j, j]
+        for k in range(j):
+            d -= a[j, k] * a[j, k]
+        if not d > 0.0:
+            return np.full(n, np.nan)
+        d = math.sqrt(d)
+        a[j, j] = d
+        for i in range(j + 1, n):
+            v = a[i, j]
+            for k in range(j):
+                v -= a[i, k] * a[j, k]
+            a[i, j] = v / d
+    x = b.copy()
+    for i in range(n):
+        v = x[i]
+        for k in range(i):
+            v -= a[i, k] * x[k]
+        x[i] = v / a[i, i]
+    for i in range(n - 1, -1, -1):
+        v = x[i]
+        for k in range(i + 1, n):
+            v -= a[k, i] * x[k]
+        x[i] = v / a[i, i]
+    return x
+
+
+def grid_line_angles(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(N, 2) the directions (radians, image axes) of a grid's row and column lines at each of its corners
+    ``xy`` (N, 2) with ``ids`` (N, 2: col, row): from the neighbours on either side along the line (one side
+    at a line's end; 0 and pi/2 where a corner has no neighbour along a line)."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    grid, lo = _dense_grid(xy, ids)
+    at = np.asarray(ids, dtype=np.int64).reshape(-1, 2) - lo
+    rows, cols = grid.shape[:2]
+    padded = np.full((rows + 2, cols + 2, 2), np.nan)
+    padded[1:-1, 1:-1] = grid
+    r, c = at[:, 1] + 1, at[:, 0] + 1
+    out = np.empty((len(xy), 2))
+    for k, (dr, dc) in enumerate(((0, 1), (1, 0))):
+        ahead, behind = padded[r + dr, c + dc], padded[r - dr, c - dc]
+        step = np.where(np.isfinite(ahead) & np.isfinite(behind), ahead - behind,
+                        np.where(np.isfinite(ahead), ahead - xy, xy - behind))
+        step = np.where(np.isfinite(step), step, [[1.0, 0.0], [0.0, 1.0]][k])
+        out[:, k] = np.arctan2(step[:, 1], step[:, 0])
+    return out
+
+
+def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(N,) px: the X-junction fit's disc for each corner of a grid (``xy`` (N, 2), ``ids`` (N, 2): col, row),
+    _XJ_RADIUS_PER_SPACING x its nearest-corner distance (_XJ_RADIUS_PX); on the grid's rim no further than
+    RIM_EDGE_MARGIN_PX inside where its outer squares were seen to end on the smoothed image
+    ``image_smooth`` (_window_reaches_edge; the board's edge beyond would pull the corner outwards), and 0
+    (no fit) where that cannot be told."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    radius = np.clip(_XJ_RADIUS_PER_SPACING * nearest_spacing(xy), *_XJ_RADIUS_PX)
+    ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
+    rim = np.flatnonzero(on_board_rim(ids))
+    if not len(rim):
+        return radius
+    grid, lo = _dense_grid(xy, ids)
+    # a square window's reach: larger than the disc's along a diagonal (conservative for the disc)
+    reaches, room = _window_reaches_edge(np.ascontiguousarray(image_smooth, np.float32), grid,
+                                         np.ascontiguousarray(ids[rim] - lo), np.floor(radius[rim]))
+    radius[rim] = np.where(reaches, np.minimum(radius[rim], room), radius[rim])
+    return radius
+
+
+def xjunction_refine(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray,
+                     max_move_px: float = 1.0) -> np.ndarray:
+    """Corners (M, 2) moved to where a blurred X-junction fitted to the raw ``image`` (H, W) in a disc of
+    ``radius`` (M,) px (xjunction_radius) around each puts them.
+
+    Starts from ``pts`` (the saddle fit's corners) and the directions of the two lines through each,
+    ``angles`` (M, 2) radians (grid_line_angles); a corner whose fit does not converge, moves more than
+    ``max_move_px`` or whose disc is below _XJ_RADIUS_PX or leaves the image keeps its start.
+    """
+    pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return pts.copy()
+    radius = np.ascontiguousarray(np.asarray(radius, dtype=np.float64).reshape(-1))
+    angles = np.ascontiguousarray(np.asarray(angles, dtype=np.float64).reshape(-1, 2))
+    return _xjunction_kernel(image, pts, angles, radius, _XJ_ITERATIONS, float(max_move_px), _XJ_CONVERGED_PX)
