@@ -88,19 +88,24 @@ SADDLE_FLOOR_PX = 0.002
 PIXEL_LOCK_PX = 0.007
 PROBE_NOISE_SHARE = 0.0  # see _saddle_covariance
 PIXEL_LOCK_LENGTH_PX = 1.3
+# The X-junction fit (the default refiner) against the saddle fit it starts from, measured by its author
+# (subpixel.xjunction_refine, commit 62d9d3d): noise-only repeats of one render give its corners 0.42 of the
+# saddle noise term's variance; noise-free renders binned by the edges' angle to the pixel axes 0.0061 /
+# 0.0033 px at 0-4 / 4-9 deg against the saddle fit's 0.0125 / 0.0108 (pixel locking about half).
+XJUNCTION_NOISE_SHARE = 0.42
+XJUNCTION_LOCK_SHARE = 0.5
 # The shift a light field puts on all of a board's corners alike, per unit gradient of log light (px^2; the
 # shift is about LIGHT_SHIFT_PX2 x grad log L, towards the light). The light term above, H^-1 m, alternates
-# in sign from corner to corner (the saddle's Hessian does) and so misses it: the blur after the light (lens,
-# the detector's smoothing) moves every edge towards the light by about sigma_blur^2 x grad log L whatever
-# its polarity, and the fit's window adds its own second moment. Measured on bench/corner_noise.py's planar
-# renders (the mean error of each board's corners against its light gradient): 6.7 px^2 (normal), 10.2
-# (uneven light), 9.9 (foreshortened), correlation 0.71-0.96; 0.1-5 on ../shared's renders, lit after the
-# blur. 14 is taken: it also covers the part of the light's error that H^-1 m leaves per corner (uneven
-# light: normalised error 3.3 with 10, 2.9 with 14; a gain on H^-1 m instead cost planar calibrations 16 %
-# in focal length, as it moves the weights between a board's corners). Each corner's covariance holds it
-# (isotropic); the pose models it as one offset of all corners along the gradient
-# (edgecal.pose.estimate.shared_error).
-LIGHT_SHIFT_PX2 = 14.0
+# in sign from corner to corner (the saddle's Hessian does) and so misses it: blur after the light moves
+# every edge towards it whatever its polarity. Measured on bench/corner_noise.py's planar renders (the mean
+# error of each board's corners against its light gradient): for the X-junction fit (the default refiner,
+# on the raw image) 1.0 px^2 (normal), 1.6 (uneven light, correlation 0.84), 1.0 (foreshortened); for the
+# saddle fit alone (on the detector's smoothed image, whose smoothing comes after the light) 6.7, 10.2
+# (correlation 0.96) and 9.9. 2 is taken, for the default: with the saddle refiner chosen instead, corners
+# under a strong light gradient are over-confident (uneven light: normalised error 4.1, not 2.9 with 14).
+# Each corner's covariance holds it (isotropic); the pose models it as one offset of all corners along the
+# gradient (edgecal.pose.estimate.shared_error).
+LIGHT_SHIFT_PX2 = 2.0
 #
 # The share of a corner's error (sigma) that all corners of its board have in common, per refiner: the light
 # field, blur and perspective over a board bias its corners alike, which does not average out over them as
@@ -639,7 +644,7 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     half = subpixel_window(spacing)
     smooth = np.ascontiguousarray(smooth, dtype=np.float32)
     gauss = noise_kernel(smoothing_sigma)
-    if refiner == "saddle":
+    if refiner in ("saddle", "xjunction"):
         fit, fit_half, blur_half, blur = saddle_fit_setup(spacing)
         if steps is None:
             steps = np.full((n, 2, 2), np.nan)
@@ -656,11 +661,11 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)
     cov = _cornersubpix_covariance(st, half, noise2, np.where(ok, a, 1.0))
     shared_fraction = np.full(n, SHARED_FRACTION["cornersubpix"])
-    if refiner == "saddle":
+    if refiner in ("saddle", "xjunction"):
         fitted = (sd[:, S_OK] > 0) & (st[:, W_INSIDE] > 0)
         if boards is not None:
             sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
-        cov[fitted] = _saddle_covariance(sd[fitted], noise2)
+        cov[fitted] = _saddle_covariance(sd[fitted], noise2, xjunction=refiner == "xjunction")
         shared_fraction[fitted] = SHARED_FRACTION["saddle"]
         read = fitted & (np.abs(sd[:, S_LEVEL]) > 1.0)
         light = np.zeros((n, 2))
@@ -715,7 +720,7 @@ def _cornersubpix_covariance(st: np.ndarray, half: np.ndarray, noise2: float, de
     return cov_noise + (model2 * 0.5 * tr)[:, None, None] * ai
 
 
-def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
+def _saddle_covariance(sd: np.ndarray, noise2: float, xjunction: bool = False) -> np.ndarray:
     """The saddle fit's corners (N, 2, 2) from its statistics sd (N, N_SADDLE) and the noise variance.
 
     Noise: the fit's saddle s solves H s = -(d, e), so dq = -H^-1 (dd, de) and Sigma = H^-1 N H^-1 x
@@ -734,6 +739,12 @@ def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
     probe_noise = noise2 * np.trace(hi @ ln @ hi, axis1=1, axis2=2)
     bias2 = np.maximum((bias ** 2).sum(axis=1) - PROBE_NOISE_SHARE * probe_noise, 0.0)
     locking = np.exp(-2.0 * np.pi ** 2 * (PIXEL_LOCK_LENGTH_PX * np.tan(sd[:, S_AXIS_ANGLE])) ** 2)
+    if xjunction:
+        # Corners the X-junction fit polished (subpixel.xjunction_refine): the saddle fit's terms, scaled by what
+        # that fit measured against it (XJUNCTION_*); the saddle fit's remaining step at them is the
+        # distance the polish moved them, not an error.
+        model2 = (SADDLE_FLOOR_PX ** 2 + (XJUNCTION_LOCK_SHARE * PIXEL_LOCK_PX) ** 2 * locking + 0.5 * bias2)
+        return XJUNCTION_NOISE_SHARE * saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
     model2 = (SADDLE_FLOOR_PX ** 2 + PIXEL_LOCK_PX ** 2 * locking + 0.5 * bias2
               + 0.5 * (sd[:, S_STEPX] ** 2 + sd[:, S_STEPY] ** 2))
     return saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)

@@ -171,11 +171,8 @@ def add_covariances(detections: list[Detection], level: Level, p: DetectorParams
     noise = covariance_noise_sigma(level.image)
     steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
     boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
-    # The X-junction fit starts from the saddle fit's corners and moves them by a few hundredths of a pixel:
-    # they keep the saddle fit's covariance, conservative for them (their errors are 0.5-0.9 of the saddle's).
-    refiner = "saddle" if p.subpixel_refiner == "xjunction" else p.subpixel_refiner
     cc = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
-                           refiner=refiner, steps=steps, boards=boards)
+                           refiner=p.subpixel_refiner, steps=steps, boards=boards)
     start = 0
     for d in detections:
         end = start + len(d.corners)
