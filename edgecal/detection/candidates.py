@@ -91,6 +91,18 @@ def _share_above(lam: np.ndarray, thr: float, stride: int) -> float:
     return above / n if n else 0.0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _gathered(lam: np.ndarray, xs: np.ndarray, ys: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first n (x, y) of xs, ys as (n, 2) float points and their responses in lam (float32)."""
+    pts = np.empty((n, 2))
+    resp = np.empty(n, np.float32)
+    for k in range(n):
+        pts[k, 0] = xs[k]
+        pts[k, 1] = ys[k]
+        resp[k] = lam[ys[k], xs[k]]
+    return pts, resp
+
+
 @njit(cache=True, nogil=True)
 def _maxima_of_dilated(lam: np.ndarray, dil: np.ndarray, thr: float, b: int) -> tuple[np.ndarray, np.ndarray]:
     """The pixels at least ``b`` from the border where ``lam`` is above ``thr`` and equals its 5x5 dilation
@@ -111,13 +123,7 @@ def _maxima_of_dilated(lam: np.ndarray, dil: np.ndarray, thr: float, b: int) -> 
             xs[n] = x
             ys[n] = y
             n += (v > thr) & (v >= drow[x])
-    pts = np.empty((n, 2))
-    resp = np.empty(n, np.float32)
-    for k in range(n):
-        pts[k, 0] = xs[k]
-        pts[k, 1] = ys[k]
-        resp[k] = lam[ys[k], xs[k]]
-    return pts, resp
+    return _gathered(lam, xs, ys, n)
 
 
 @njit(cache=True, nogil=True)
@@ -168,12 +174,7 @@ def _sparse_local_maxima(lam: np.ndarray, thr: float, border: int, max_above: in
                 xs[n] = x
                 ys[n] = y
                 n += 1
-    pts = np.empty((n, 2))
-    resp = np.empty(n, np.float32)
-    for k in range(n):
-        pts[k, 0] = xs[k]
-        pts[k, 1] = ys[k]
-        resp[k] = lam[ys[k], xs[k]]
+    pts, resp = _gathered(lam, xs, ys, n)
     return pts, resp, True
 
 
