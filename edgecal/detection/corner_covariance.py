@@ -145,7 +145,7 @@ SQUARE_PROBE = 0.25
 MAX_SADDLE_STEP_PX = 1.0
 
 
-def covariance_noise_sigma(grey: np.ndarray, half_noise: float | None = None) -> float:
+def covariance_noise_sigma(grey: np.ndarray) -> float:
     """The image noise (grey levels, 1 sigma) that moves the corners.
 
     The detector's estimate (candidates.estimate_noise_sigma) looks at pixel-to-pixel differences, which
@@ -156,14 +156,13 @@ def covariance_noise_sigma(grey: np.ndarray, half_noise: float | None = None) ->
     keeps the full-resolution value, compressed noise gets about the half-resolution one. Both are measured
     on the 8-bit image, so they hold its quantisation; quantisation alone (1/12 grey level^2) is the floor, as
     a noise-free 8-bit image still has it (added on top, it made clean renders' covariances 1.2x too wide
-    in sigma). ``half_noise``:
-    half_resolution_noise_sigma of ``grey`` when the caller has it.
+    in sigma).
     """
     from edgecal.detection.candidates import estimate_noise_sigma, half_resolution_noise_sigma
 
     # Every 6th pixel at full resolution: tens of thousands of samples, a few times cheaper.
     full = estimate_noise_sigma(grey, stride=6)
-    half = half_resolution_noise_sigma(grey) if half_noise is None else half_noise
+    half = half_resolution_noise_sigma(grey)
     excess = max(0.0, half * half - (WHITE_NOISE_HALF_RATIO * full) ** 2)
     return float(np.sqrt(max(full * full + excess, 1.0 / 12.0)))
 
