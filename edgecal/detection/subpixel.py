@@ -762,7 +762,12 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
     pw = np.empty_like(px)
     jtj = np.empty((7, 7))
     jtr = np.empty(7)
-    jac = np.empty(7)
+    # the residuals and the Jacobian's columns per disc pixel (weighted copies too), summed into the normal
+    # equations column by column: SIMD sums over the pixels, where adding every pixel's 28 products to the
+    # matrix in turn cost ~40 % of the fit
+    res = np.empty(px.shape[0])
+    jac = np.empty((7, px.shape[0]))
+    wjac = np.empty((7, px.shape[0]))
     blur = 1.0  # the blur found at the last corner (one board's corners share their blur): the next one's start
     for i in range(m):
         x = pts[i, 0]
@@ -814,9 +819,6 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
             s = p[4]
             c = p[6]
             inv = 1.0 / (_SQRT2 * s)
-            cost = 0.0
-            jtj[:] = 0.0
-            jtr[:] = 0.0
             for k in range(n):
                 dx = px[k] - p[0]
                 dy = py[k] - p[1]
@@ -826,21 +828,15 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
                 f2, f2d, f2s = _edge_profile(d2, s, inv)
                 g1 = c * f1d
                 g2 = c * f2d
-                res = p[5] + c * f1 * f2 - pv[k]
-                jac[0] = g1 * s1 * f2 + f1 * g2 * s2
-                jac[1] = -(g1 * c1 * f2 + f1 * g2 * c2)
-                jac[2] = -g1 * (dx * c1 + dy * s1) * f2
-                jac[3] = -f1 * g2 * (dx * c2 + dy * s2)
-                jac[4] = c * (f1s * f2 + f1 * f2s)
-                jac[5] = 1.0
-                jac[6] = f1 * f2
-                wk = pw[k]
-                cost += wk * res * res
-                for a in range(7):
-                    wa = wk * jac[a]
-                    jtr[a] += wa * res
-                    for b in range(a, 7):
-                        jtj[a, b] += wa * jac[b]
+                res[k] = p[5] + c * f1 * f2 - pv[k]
+                jac[0, k] = g1 * s1 * f2 + f1 * g2 * s2
+                jac[1, k] = -(g1 * c1 * f2 + f1 * g2 * c2)
+                jac[2, k] = -g1 * (dx * c1 + dy * s1) * f2
+                jac[3, k] = -f1 * g2 * (dx * c2 + dy * s2)
+                jac[4, k] = c * (f1s * f2 + f1 * f2s)
+                jac[5, k] = 1.0
+                jac[6, k] = f1 * f2
+            cost = _weighted_sums(jac, wjac, res, pw, n, jtj, jtr)
             if cost > prev_cost:  # the last step overshot: go half way back and damp
                 p = prev + 0.5 * (p - prev)
                 damping *= 10.0
@@ -864,6 +860,35 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
             out[i, 1] = p[1]
             blur = p[4]
     return out
+
+
+# fast maths as the fit's: the sums over the pixels in SIMD lanes
+@njit(cache=True, nogil=True, fastmath={"contract", "afn", "reassoc", "arcp", "nsz"})
+def _weighted_sums(jac: np.ndarray, wjac: np.ndarray, res: np.ndarray, w: np.ndarray, n: int, jtj: np.ndarray,
+                   jtr: np.ndarray) -> float:
+    """The weighted least-squares sums of the first ``n`` pixels: jtj (upper triangle) = J^T W J, jtr = J^T W r
+    for the Jacobian's columns ``jac`` (7, >= n) and residuals ``res``, weights ``w``; returns r^T W r.
+    ``wjac`` (7, >= n) is scratch (the weighted columns)."""
+    cost = 0.0
+    for k in range(n):
+        cost += w[k] * res[k] * res[k]
+    for a in range(7):
+        ja = jac[a]
+        wa = wjac[a]
+        acc = 0.0
+        for k in range(n):
+            wa[k] = w[k] * ja[k]
+            acc += wa[k] * res[k]
+        jtr[a] = acc
+    for a in range(7):
+        wa = wjac[a]
+        for b in range(a, 7):
+            jb = jac[b]
+            acc = 0.0
+            for k in range(n):
+                acc += wa[k] * jb[k]
+            jtj[a, b] = acc
+    return cost
 
 
 @njit(cache=True, nogil=True, inline="always")
