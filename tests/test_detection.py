@@ -381,11 +381,22 @@ def test_capture_and_calibrate_refuse_a_sub_grid_alike(tmp_path, capsys, caplog)
 
 # --- Candidate thinning: ChESS filter and de-duplication -------------------------------------------------
 
-def test_dedupe_in_order_matches_a_plain_greedy_pass() -> None:
+@pytest.mark.parametrize("layout", ["dense", "frame", "line", "clusters"])
+def test_dedupe_in_order_matches_a_plain_greedy_pass(layout: str) -> None:
+    """Whatever the hash grid's cells (radius-sized on dense points, far larger on a frame's sparse ones or
+    along a line), the kept points are the greedy pass's."""
     from edgecal.detection.candidates import dedupe_in_order
 
     rng = np.random.default_rng(4)
-    pts = rng.uniform(0, 40, size=(400, 2))
+    if layout == "dense":
+        pts = rng.uniform(0, 40, size=(400, 2))
+    elif layout == "frame":
+        pts = rng.uniform(0, 1, size=(300, 2)) * [1280, 800]
+        pts[150:] = pts[:150] + rng.uniform(-1.2, 1.2, size=(150, 2))  # near-duplicates across the frame
+    elif layout == "line":
+        pts = np.c_[np.round(rng.uniform(0, 900, 300) * 2) / 2, np.full(300, 7.0)]
+    else:
+        pts = np.concatenate([rng.normal(c, 1.0, size=(60, 2)) for c in ((10, 10), (600, 400), (1200, 20))])
     kept: list[int] = []
     for i, p in enumerate(pts):
         if all(np.hypot(*(p - pts[j])) > 1.5 for j in kept):

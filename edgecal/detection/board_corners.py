@@ -83,7 +83,7 @@ def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p
         if not flagged.any():
             break
         sel = order[flagged]
-        grid = {(int(c), int(r)): q for (c, r), q in zip(ids, out)}
+        grid = dict(zip(map(tuple, np.asarray(ids).tolist()), out))
         preds, keys, _sp = predict_holes(grid, [(int(c), int(r)) for c, r in ids[sel]])
         if not keys:
             break

@@ -270,7 +270,7 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
         if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
-        grown = complete_grid({(int(c), int(r)): q for (c, r), q in zip(det.ids, xy)}, level.smooth,
+        grown = complete_grid(dict(zip(map(tuple, det.ids.tolist()), xy)), level.smooth,
                               level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
         if len(grown) > len(xy):
             return None
@@ -342,7 +342,7 @@ def _find_grids(level: Level, p: DetectorParams, exclude: list[np.ndarray] | Non
     for comp in np.unique(labels[:, 0]):
         members = np.nonzero(labels[:, 0] == comp)[0]
         if comp >= 0 and len(members) >= p.min_grid_corners:
-            grids.append({(int(labels[i, 1]), int(labels[i, 2])): pts[i] for i in members})
+            grids.append(dict(zip(map(tuple, labels[members, 1:3].tolist()), pts[members])))
     return debug, grids
 
 
