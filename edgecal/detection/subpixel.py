@@ -13,7 +13,7 @@ import math
 
 import cv2
 import numpy as np
-from llvmlite import ir
+from llvmlite import ir  # type: ignore[import-untyped]
 from numba import njit, types
 from numba.extending import intrinsic
 
@@ -719,11 +719,11 @@ def _erf(u: float, gauss: float) -> float:
 
 
 @intrinsic
-def _f64_from_bits(typingctx, bits):  # type: ignore[no-untyped-def]
+def _f64_from_bits(typingctx, bits):
     """The float64 whose IEEE bits are the int64 ``bits`` (a bit cast: numba has no scalar one)."""
     sig = types.float64(types.int64)
 
-    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+    def codegen(context, builder, signature, args):
         return builder.bitcast(args[0], ir.DoubleType())
     return sig, codegen
 
@@ -757,7 +757,7 @@ def _exp_neg_square(u: float) -> float:
     p = p * r + _EXP_TAYLOR[11]
     p = p * r + _EXP_TAYLOR[12]
     p = p * r + _EXP_TAYLOR[13]
-    return p * _f64_from_bits((np.int64(k) + 1023) << 52)
+    return p * _f64_from_bits((np.int64(k) + 1023) << 52)  # type: ignore[call-arg]
 
 
 @njit(cache=True, nogil=True, inline="always")
