@@ -280,6 +280,155 @@ class CovarianceTimer:
         return w, c
 
 
+# The stages StageTimer times: (label, module, attribute); a dotted attribute is a class's method. Nested
+# stages are timed inside their parents (times are inclusive); "~" marks the label of a stage's parent.
+TRACKED_STAGES = (
+    ("frame (read + process + publish)", "edgecal.stream.loop", "LiveLoop._step"),
+    ("~ pipeline.process", "edgecal.stream.frame_pipeline", "FramePipeline.process"),
+    ("~ ~ predict corners", "edgecal.stream.tracker", "BoardTracker.predict"),
+    ("~ ~ track_boards (2 images)", "edgecal.stream.frame_pipeline", "track_boards"),
+    ("~ ~ ~ crop noise", "edgecal.detection.tracking", "estimate_noise_sigma"),
+    ("~ ~ ~ smooth", "edgecal.detection.tracking", "smooth_image"),
+    ("~ ~ ~ gradients", "edgecal.detection.tracking", "gradients"),
+    ("~ ~ ~ verify_predictions (4 passes)", "edgecal.detection.tracking", "verify_predictions"),
+    ("~ ~ ~ ~ cornerSubPix (verify)", "edgecal.detection.completion", "refine_corners"),
+    ("~ ~ ~ ~ probe", "edgecal.detection.completion", "probe_candidates"),
+    ("~ ~ ~ board_motion", "edgecal.detection.tracking", "board_motion"),
+    ("~ ~ ~ square colours", "edgecal.detection.tracking", "square_colours_match"),
+    ("~ ~ ~ beyond_border", "edgecal.detection.tracking", "beyond_border"),
+    ("~ ~ ~ refine_rim", "edgecal.detection.tracking", "refine_rim"),
+    ("~ ~ ~ ~ cornerSubPix (rim)", "edgecal.detection.subpixel", "refine_corners"),
+    ("~ ~ ~ corner_covariance", "edgecal.detection.tracking", "corner_covariance"),
+    ("~ ~ ~ covariance noise (whole image)", "edgecal.detection.tracking", "covariance_noise_sigma"),
+    ("~ ~ search_near (lost boards)", "edgecal.stream.frame_pipeline", "search_near"),
+    ("~ ~ estimate_pose", "edgecal.stream.frame_pipeline", "estimate_pose"),
+    ("~ ~ ~ initial_pose", "edgecal.pose.estimate", "initial_pose"),
+    ("~ ~ ~ refine_pose", "edgecal.pose.estimate", "refine_pose"),
+    ("~ ~ ~ pose covariance", "edgecal.pose.estimate", "_fit_covariance"),
+    ("~ pose_message", "edgecal.stream.loop", "pose_message"),
+    ("~ send (ZeroMQ, sinks)", "edgecal.publish.outputs", "LoopOutputs.send"),
+)
+
+
+class StageTimer:
+    """Thread CPU time of the live loop's stages (TRACKED_STAGES) per frame, by wrapping each stage's function
+    where its caller looks it up (a bench instrument: restored on exit). A frame is one LiveLoop._step; work in
+    the pipeline's worker thread (the right image's search) is counted in the frame it belongs to."""
+
+    def __init__(self) -> None:
+        self.frames: list[dict[str, float]] = []
+        self.tracked: list[bool] = []
+        self._current: dict[str, float] | None = None
+        self._lock = threading.Lock()
+        self._saved: list[tuple[object, str, object]] = []
+
+    def _wrap(self, label: str, fn):
+        timer = self
+
+        def timed(*args, **kwargs):
+            c0 = time.thread_time()
+            out = fn(*args, **kwargs)
+            dt = time.thread_time() - c0
+            with timer._lock:
+                if timer._current is not None:
+                    timer._current[label] = timer._current.get(label, 0.0) + dt
+            return out
+        return timed
+
+    def __enter__(self) -> StageTimer:
+        import importlib
+        for label, module, attr in TRACKED_STAGES:
+            owner: object = importlib.import_module(module)
+            name = attr
+            if "." in attr:
+                cls, name = attr.split(".")
+                owner = getattr(owner, cls)
+            original = getattr(owner, name)
+            self._saved.append((owner, name, original))
+            if attr == "LiveLoop._step":
+                setattr(owner, name, self._frame(original))
+            elif attr == "FramePipeline.process":
+                setattr(owner, name, self._process(label, original))
+            else:
+                setattr(owner, name, self._wrap(label, original))
+        return self
+
+    def _frame(self, step):
+        timer = self
+
+        def timed(loop, *args, **kwargs):
+            with timer._lock:
+                timer._current = {}
+            c0 = time.thread_time()
+            out = step(loop, *args, **kwargs)
+            dt = time.thread_time() - c0
+            with timer._lock:
+                frame, timer._current = timer._current, None
+            if "tracked" in frame:             # a step that processed a frame (not a timeout or the end)
+                frame["frame (read + process + publish)"] = dt
+                timer.tracked.append(bool(frame.pop("tracked")))
+                timer.frames.append(frame)
+            return out
+        return timed
+
+    def _process(self, label: str, process):
+        timer = self
+
+        def timed(pipeline, *args, **kwargs):
+            c0 = time.thread_time()
+            result = process(pipeline, *args, **kwargs)
+            dt = time.thread_time() - c0
+            with timer._lock:
+                if timer._current is not None:
+                    timer._current[label] = dt
+                    timer._current["tracked"] = result.tracked
+            return result
+        return timed
+
+    def __exit__(self, *exc: object) -> None:
+        for owner, name, original in reversed(self._saved):
+            setattr(owner, name, original)
+        self._saved.clear()
+
+
+def stage_profile(folder: Path, out: Path, truth: dict, args: argparse.Namespace, passes: int) -> dict:
+    """CPU time per stage of the tracked stereo frames: ``passes`` as-fast-as-possible tracked runs of the live
+    loop (every frame in order) under StageTimer; per stage the median over the tracked frames (0 in a frame
+    that did not run it), the mean, and how many frames ran it. The pose outputs are returned too, to compare
+    two commits' frame by frame."""
+    run_loop(folder, out, False, args.endpoint, True, not args.decode, args.covariance_scale)  # numba's cache
+    load0 = os.getloadavg()[0]
+    frames: list[dict[str, float]] = []
+    positions: list = []
+    for _ in range(passes):
+        with StageTimer() as timer:
+            run = run_loop(folder, out, False, args.endpoint, True, not args.decode, args.covariance_scale)
+        frames += [f for f, tracked in zip(timer.frames, timer.tracked) if tracked]
+        positions.append({m["seq"]: m["pose"]["position_m"] for m in run["messages"]
+                          if m["type"] == "pose" and m["valid"]})
+    labels = [label for label, _m, _a in TRACKED_STAGES]
+    rows = {}
+    for label in labels:
+        v = np.array([1000 * f.get(label, 0.0) for f in frames])
+        rows[label] = {"median_ms": float(np.median(v)) if v.size else float("nan"),
+                       "mean_ms": float(np.mean(v)) if v.size else float("nan"),
+                       "frames": int(sum(label in f for f in frames))}
+    return {"tracked_frames": len(frames), "passes": passes, "stages": rows, "load_average_before": load0,
+            "load_average_after": os.getloadavg()[0],
+            "positions_m": {str(k): v for k, v in positions[-1].items()},
+            "same_positions_every_pass": all(p == positions[0] for p in positions)}
+
+
+def print_stage_profile(s: dict) -> None:
+    """The stage profile's table."""
+    print(f"\nCPU per stage of a tracked stereo frame ({s['tracked_frames']} tracked frames over {s['passes']} "
+          f"as-fast-as-possible passes; thread CPU, inclusive of the nested stages; load average "
+          f"{s['load_average_before']:.1f} before, {s['load_average_after']:.1f} after)")
+    print(f"  {'stage':<44} {'median ms':>9} {'mean ms':>8} {'frames':>7}")
+    for label, r in s["stages"].items():
+        print(f"  {label.replace('~ ', '  '):<44} {r['median_ms']:9.2f} {r['mean_ms']:8.2f} {r['frames']:7d}")
+
+
 def _strip_covariances(dets: list) -> list:
     """The detections with the same usable corners and no covariances (every corner weighs alike)."""
     from dataclasses import replace
@@ -520,6 +669,10 @@ def main() -> int:
     ap.add_argument("--covariance-cost", type=int, default=0, metavar="K",
                     help="also K pairs of as-fast-as-possible tracked loop runs, one with the corner covariance "
                          "timed and one with it replaced by a constant (alternating): its share of the loop")
+    ap.add_argument("--stages", type=int, default=0, metavar="P",
+                    help="also the CPU per stage of a tracked stereo frame over P as-fast-as-possible passes "
+                         "(medians; with --offline-only or --stages-only nothing else)")
+    ap.add_argument("--stages-only", action="store_true", help="only the --stages part")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -541,6 +694,13 @@ def main() -> int:
                      "scene": args.scene, "covariance_scale": args.covariance_scale,
                      "photometric": args.photometric, "exposure_ms": args.exposure_ms,
                      "preload": not args.decode, "load_average_before": os.getloadavg()[0]}
+    if args.stages:
+        results["stages"] = stage_profile(folder, out, truth, args, args.stages)
+        print_stage_profile(results["stages"])
+        if args.stages_only:
+            if args.json:
+                Path(args.json).write_text(json.dumps(results, indent=2, default=float))
+            return 0
     if args.offline:
         load0 = os.getloadavg()[0]
         results["offline"] = offline(folder, truth, args.offline)
