@@ -280,13 +280,14 @@ class CovarianceTimer:
         return w, c
 
 
-# The stages StageTimer times: (label, module, attribute); a dotted attribute is a class's method. Nested
-# stages are timed inside their parents (times are inclusive); "~" marks the label of a stage's parent.
+# The stages StageTimer times: (label, module, attribute); a dotted attribute is a class's method, "a|b" the
+# first of the two the module has (an older commit's name, for A/B runs). Nested stages are timed inside their
+# parents (times are inclusive); each "~" in a label is a level of nesting.
 TRACKED_STAGES = (
     ("frame (read + process + publish)", "edgecal.stream.loop", "LiveLoop._step"),
     ("~ pipeline.process", "edgecal.stream.frame_pipeline", "FramePipeline.process"),
     ("~ ~ predict corners", "edgecal.stream.tracker", "BoardTracker.predict"),
-    ("~ ~ track_boards (2 images)", "edgecal.stream.frame_pipeline", "track_boards"),
+    ("~ ~ verify predicted corners (2 images)", "edgecal.stream.frame_pipeline", "verify_boards|track_boards"),
     ("~ ~ ~ crop noise", "edgecal.detection.tracking", "estimate_noise_sigma"),
     ("~ ~ ~ smooth", "edgecal.detection.tracking", "smooth_image"),
     ("~ ~ ~ gradients", "edgecal.detection.tracking", "gradients"),
@@ -339,10 +340,13 @@ class StageTimer:
         import importlib
         for label, module, attr in TRACKED_STAGES:
             owner: object = importlib.import_module(module)
-            name = attr
+            names = attr.split("|")
             if "." in attr:
                 cls, name = attr.split(".")
-                owner = getattr(owner, cls)
+                owner, names = getattr(owner, cls), [name]
+            name = next((n for n in names if hasattr(owner, n)), "")
+            if not name:
+                continue
             original = getattr(owner, name)
             self._saved.append((owner, name, original))
             if attr == "LiveLoop._step":

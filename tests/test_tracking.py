@@ -13,7 +13,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from edgecal.detection.detector import detect
-from edgecal.detection.tracking import MAX_MOTION_RESIDUAL_PX, near_window, search_near, track_boards
+from edgecal.detection.subpixel import nearest_spacing
+from edgecal.detection.tracking import (
+    MAX_MOTION_RESIDUAL_PX,
+    near_window,
+    search_near,
+    track_boards,
+    verify_boards,
+)
 from edgecal.detection.types import CornerPrediction
 from edgecal.drivers.base import Frame, StereoFrame
 from edgecal.pose import Pose, estimate_pose
@@ -139,6 +146,29 @@ def test_tracking_rejects_boards_that_are_not_there(robot) -> None:
     assert track_boards(np.full_like(image, 128), preds) == []
     noise = np.random.default_rng(1).integers(0, 255, image.shape, dtype=np.uint8)
     assert track_boards(noise, preds) == []
+
+
+def test_a_board_whose_confirmed_corners_frame_no_squares_is_not_kept_but_found_in_place(robot) -> None:
+    """Every other corner of a board blotted out (as noise leaves a hard frame's confirmed corners
+    scattered): its confirmed corners frame no square, so the colour check cannot decide and the board is
+    not kept, but with the others placed by the board's motion the colours match: it is in place (no search
+    around it is worth it). With its ids one column off (the colours inverted) it is not."""
+    cfg, frame, image, preds = left_view(robot)
+    # the board seen most squarely (its squares' shorter side longest): the blots leave its squares' middles
+    board = max(preds, key=lambda p: np.median(nearest_spacing(p.xy)))
+    square = float(np.median(np.linalg.norm(np.diff(board.xy, axis=0), axis=1)))    # along its rows
+    blotted = image.copy()
+    for (c, r), xy in zip(board.ids, board.xy):
+        if (c + r) % 2 == 0:
+            cv2.circle(blotted, (int(round(xy[0])), int(round(xy[1]))), int(0.5 * square), 128, -1)
+    tracked = verify_boards(blotted, preds)
+    assert {d.board for d in tracked.detections} == {p.board.name for p in preds} - {board.board.name}
+    assert tracked.in_place == {board.board.name}
+    assert [d.board for d in track_boards(blotted, preds)] == [d.board for d in tracked.detections]
+    # in the untouched image every board is kept: none is left in place only
+    assert verify_boards(image, preds).in_place == frozenset()
+    off_by_one = [CornerPrediction(board.board, board.ids + np.array([1, 0]), board.xy)]
+    assert verify_boards(blotted, off_by_one) == verify_boards(blotted, [])
 
 
 def test_tracked_pose_is_as_accurate_as_the_searched_one(robot) -> None:

@@ -21,6 +21,7 @@ squares leave cornerSubPix ill-conditioned along them) breaks that map and is dr
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -182,6 +183,23 @@ def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: l
     return [(refined[i:j], good[i:j], quality[i:j]) for i, j in zip(bounds[:-1], bounds[1:])]
 
 
+@dataclass(frozen=True)
+class TrackedBoards:
+    """What verifying one image's predicted corners gave (verify_boards).
+
+    detections: the boards confirmed (track_boards' result).
+    in_place:   names of boards not confirmed whose prediction still held: enough of their corners were
+                confirmed where predicted, moving with the board, but too few whole squares were framed by
+                confirmed corners for the colour check (in a noisy image the confirmed corners are scattered
+                over the board); with the others placed by the board's motion the squares' colours match
+                the ids. Such a board is where it was predicted, labelled right: a search around the
+                prediction looks at the same corners, so it is not worth one (FramePipeline._tracked_pose).
+    """
+
+    detections: list[Detection]
+    in_place: frozenset[str] = frozenset()
+
+
 def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
                  params: DetectorParams | None = None) -> list[Detection]:
     """The predicted boards that are really there, corners refined to sub-pixel (OpenCV pixel convention).
@@ -191,12 +209,20 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     kept when at least MIN_CONFIRMED_FRACTION of its predicted corners (and no fewer than 4) are confirmed,
     its squares' colours match its ids and there are no corners one square beyond its sides; its Detection
     holds the confirmed corners (``complete`` when they are all of the board). Boards not confirmed are
-    left out: the caller decides whether to search the image.
+    left out: the caller decides whether to search the image (verify_boards also says which of them held
+    their prediction).
     """
+    return verify_boards(image, predictions, params).detections
+
+
+def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
+                  params: DetectorParams | None = None) -> TrackedBoards:
+    """track_boards' detections, and the boards not confirmed that are where they were predicted
+    (TrackedBoards.in_place)."""
     p = params or DEFAULT_PARAMS
     predictions = [pr for pr in predictions if len(pr.ids) >= 4]
     if not predictions:
-        return []
+        return TrackedBoards([])
     grey = as_grey(image)
     h, w = grey.shape
     spacing = [nearest_spacing(pr.xy) for pr in predictions]
@@ -209,7 +235,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     x1 = min(w, int(np.ceil(all_xy[:, 0].max())) + margin + 1)
     y1 = min(h, int(np.ceil(all_xy[:, 1].max())) + margin + 1)
     if x1 - x0 < 8 or y1 - y0 < 8:
-        return []
+        return TrackedBoards([])
     crop = grey[y0:y1, x0:x1]
     # Noise from every 6th pixel: the crop around a robot's boards still gives thousands of samples.
     sigma = smoothing_sigma(estimate_noise_sigma(crop, stride=6))
@@ -221,6 +247,8 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     # Pass 1: every prediction as it is, all boards in one call.
     results = [list(r) for r in _verify_boards(smooth, gx, gy, local, spacing, p, True)]
     motions = [_keep_following(pred, res[0], res[1]) for pred, res in zip(local, results)]
+    # each board's motion fitted to its corners as last confirmed (passes 2 and 3 refit it)
+    last_motions = list(motions)
     # Pass 2: predictions pass 1 missed (more than a quarter square off: the first frames have no velocity
     # yet, a slanted board's squares are thin), moved by their board's motion fitted to the confirmed ones.
     retry = [k for k, (M, res) in enumerate(zip(motions, results)) if M is not None and not res[1].all()]
@@ -231,7 +259,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     for k, m, again in zip(retry, missed, again_all):
         for part in range(3):
             results[k][part][m] = again[part]
-        _keep_following(local[k], results[k][0], results[k][1])
+        last_motions[k] = _keep_following(local[k], results[k][0], results[k][1])
     # Pass 3: rim corners still missed, with the rim's smaller window: where a board's outer squares are cut
     # short the full window reaches its edge and pulls the corner outwards (subpixel.window_spacing).
     rim_missed = [np.flatnonzero(~res[1] & on_board_rim(pr.ids, (pr.board.cols, pr.board.rows)))
@@ -244,14 +272,17 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         if len(m):
             for part in range(3):
                 results[k][part][m] = again[part]
-            _keep_following(local[k], results[k][0], results[k][1])
+            last_motions[k] = _keep_following(local[k], results[k][0], results[k][1])
     # Boards with enough confirmed corners whose squares have the right colours...
-    kept = []
-    for pr, sp, (refined, good, quality) in zip(predictions, spacing, results):
+    kept, in_place = [], set()
+    for pr, sp, (refined, good, quality), pred, M in zip(predictions, spacing, results, local, last_motions):
         if good.sum() < max(4, MIN_CONFIRMED_FRACTION * len(good)):
             continue
         if square_colours_match(pr.ids[good], refined[good], smooth, p.min_contrast):
             kept.append((pr, pr.ids[good], refined[good], quality[good], float(np.median(sp)), sp[good]))
+        elif M is not None and square_colours_match(
+                pr.ids, np.where(good[:, None], refined, pred @ M[:, :2].T + M[:, 2]), smooth, p.min_contrast):
+            in_place.add(pr.board.name)
     # ... and no corners one square beyond their sides (all boards in one call; probed at half the square
     # size, a ring of 0.3 squares: beyond the outer corners lie the margin and, a third of a square
     # further, whatever the board is glued on - a full-size ring could see four sectors alternate there).
@@ -277,7 +308,7 @@ def track_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         bounds = np.cumsum([0] + [len(d.corners) for d in found])
         for d, i, j in zip(found, bounds[:-1], bounds[1:]):
             d.covariance, d.shared_px2, d.unusable = cc.covariance[i:j], cc.shared_px2[i:j], cc.unusable[i:j]
-    return found
+    return TrackedBoards(found, frozenset(in_place))
 
 
 def near_window(predictions: Sequence[CornerPrediction], shape: tuple[int, int]) -> tuple[int, int, int, int] | None:

@@ -21,7 +21,7 @@ import numpy as np
 from edgecal.camera import StereoRig
 from edgecal.detection.detector import detect
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.tracking import search_near, track_boards
+from edgecal.detection.tracking import TrackedBoards, search_near, track_boards, verify_boards
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.drivers.base import StereoFrame
 from edgecal.errors import InputError
@@ -183,9 +183,9 @@ class FramePipeline:
             self._seen = (set(), set())
         return result
 
-    def _track(self, image: np.ndarray, predicted: list[CornerPrediction]) -> list[Detection]:
+    def _track(self, image: np.ndarray, predicted: list[CornerPrediction]) -> TrackedBoards:
         """The predicted boards confirmed in one image (tracking; see edgecal.stream.tracker)."""
-        return track_boards(image, predicted, self.detector) if predicted else []
+        return verify_boards(image, predicted, self.detector) if predicted else TrackedBoards([])
 
     def _tracked_pose(self, predicted: tuple[list[CornerPrediction], list[CornerPrediction]], left: np.ndarray,
                       right: np.ndarray, result: FrameResult) -> Pose | None:
@@ -198,18 +198,24 @@ class FramePipeline:
         # one at Python's default 5 ms switch interval and about the same at 0.5 ms; tracking alone, best of
         # 7 per frame, 1.03-1.04x the wall of one thread at 5, 0.5 and 0.1 ms, and 1.19x with the right image
         # in a worker process. The full search below, mostly in GIL-free kernels, does gain.
-        left_det = self._track(left, left_pred)
-        right_det = self._track(right, right_pred)
+        left_tracked = self._track(left, left_pred)
+        right_tracked = self._track(right, right_pred)
+        left_det, right_det = left_tracked.detections, right_tracked.detections
         # A board the last frame found that verification lost is searched for (with all the search's checks)
         # around where it was predicted only: the boards move as one body with those confirmed, the rest of
-        # the image cannot hold it, and it costs 10-20x less than the whole image.
+        # the image cannot hold it, and it costs 10-20x less than the whole image. Not a board verification
+        # found in place (TrackedBoards.in_place: its corners where predicted, too scattered to frame the
+        # squares its colour check needs): the search would look at the same corners (on bench/live.py's
+        # hard sequence it found none of 41 such boards, at 2-13 ms of CPU each).
         seen = self._seen
         lost = [[p for p in preds if p.board.name in names - {d.board for d in dets}]
                 for preds, dets, names in ((left_pred, left_det, seen[0]), (right_pred, right_det, seen[1]))]
+        search = [[p for p in lost_k if p.board.name not in tracked.in_place]
+                  for lost_k, tracked in zip(lost, (left_tracked, right_tracked))]
         verified = [bool(left_det), bool(right_det)]
-        if lost[0] or lost[1]:
-            right_job = self._pool.submit(self._search_lost, right, lost[1], right_det) if lost[1] else None
-            left_det = self._search_lost(left, lost[0], left_det) if lost[0] else left_det
+        if search[0] or search[1]:
+            right_job = self._pool.submit(self._search_lost, right, search[1], right_det) if search[1] else None
+            left_det = self._search_lost(left, search[0], left_det) if search[0] else left_det
             right_det = right_job.result() if right_job is not None else right_det
         result.detections = (left_det, right_det)
         # A camera that saw boards in the last frame and none now has lost the track: the full search decides.
