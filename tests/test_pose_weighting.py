@@ -144,3 +144,51 @@ def test_a_light_gradient_widens_the_pose_sideways() -> None:
     offset_m = LIGHT_SHIFT_PX2 * 2e-3 * t[2] / cams.left.fx     # the common offset at the robot's range
     assert added[0] == pytest.approx(offset_m ** 2, rel=0.5)
     assert added[2] < 0.2 * added[0] and abs(added[1]) < 0.2 * added[0]
+
+
+def test_refine_pose_takes_the_steps_least_squares_takes() -> None:
+    """refine_pose runs MINPACK's Levenberg-Marquardt through leastsq (for its lower overhead): from a start
+    off the truth, on noisy weighted corners, the same pose as least_squares(method="lm") gives, bit for bit."""
+    import cv2
+    from scipy.optimize import least_squares
+
+    from edgecal.pose.estimate import _views, corner_covariances, corner_table
+    from edgecal.pose.refine import _residuals_and_jacobian, _view_whitening, refine_pose
+
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    rng = np.random.default_rng(5)
+    covs = [_random_covariances(rng, len(d.corners), 0.2) for d in left + right]
+    noisy = _with_model_errors(left + right, covs, rng)
+    left, right = noisy[:len(left)], noisy[len(left):]
+    tl, tr = corner_table(left, target), corner_table(right, target)
+    views = list(_views(cams, target, tl, tr, (corner_covariances(left, target), corner_covariances(right, target))))
+    R0 = cv2.Rodrigues(np.array([0.01, -0.02, 0.015]))[0] @ R
+    t0 = t + np.array([0.01, -0.005, 0.02])
+    R_fit, t_fit, _res, _J = refine_pose(R0, t0, views)
+    white = _view_whitening(views)
+
+    def whitened(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, J = _residuals_and_jacobian(x, views)
+        return (np.einsum("nij,nj->ni", white, r.reshape(-1, 2)).ravel(),
+                np.einsum("nij,njk->nik", white, J.reshape(-1, 2, 6)).reshape(-1, 6))
+
+    x0 = np.concatenate([cv2.Rodrigues(R0)[0].ravel(), t0])
+    sol = least_squares(lambda x: whitened(x)[0], x0, jac=lambda x: whitened(x)[1], method="lm", max_nfev=50,
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    assert np.array_equal(t_fit, sol.x[3:])
+    assert np.array_equal(R_fit, cv2.Rodrigues(sol.x[:3].reshape(3, 1))[0])
+    assert np.linalg.norm(t_fit - t) < 1e-3
+
+
+def test_model_covariance_sums_by_group_as_add_at_does() -> None:
+    """model_covariance's sums over each group's corners (a numba pass) against np.add.at, bit for bit."""
+    from edgecal.pose.refine import _sum_by_group
+
+    rng = np.random.default_rng(3)
+    values = rng.standard_normal((150, 38, 6)) * 10.0 ** rng.uniform(-6, 6, (150, 1, 1))
+    for groups in (np.zeros(150, dtype=np.int64), rng.integers(0, 6, 150)):
+        expected = np.zeros((int(groups.max()) + 1, 38, 6))
+        np.add.at(expected, groups, values)
+        assert np.array_equal(_sum_by_group(groups, values, int(groups.max()) + 1), expected)

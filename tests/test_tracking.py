@@ -335,3 +335,14 @@ def test_the_warm_up_board_has_cut_outer_squares_and_is_found_to_subpixel() -> N
     assert det.complete
     drawn = np.array([x0 + (1 + det.ids[:, 0]) * square, y0 + (1 + det.ids[:, 1]) * square]).T - 0.5
     assert np.abs(det.corners - drawn).max() < 0.1
+
+
+def test_the_motion_checks_median_is_numpys() -> None:
+    """board_motion's median (a short-array shortcut) gives np.median's number, bit for bit."""
+    from edgecal.detection.tracking import _median
+
+    rng = np.random.default_rng(2)
+    for n in range(1, 41):
+        v = rng.standard_normal(n) * 10.0 ** rng.uniform(-3, 3)
+        assert _median(v) == float(np.median(v))
+    assert np.isnan(_median(np.array([1.0, np.nan, 2.0]))) and np.isnan(_median(np.zeros(0)))

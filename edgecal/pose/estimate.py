@@ -270,7 +270,7 @@ def _estimate(tl: dict, tr: dict, target: Target, cams: StereoRig, settings: Pos
         try:
             R, t, res, J = refine_pose(R, t, views)
         except ValueError:
-            # least_squares refuses a start that puts corners behind a camera (no projection there), e.g.
+            # refine_pose refuses a start that puts corners behind a camera (no projection there), e.g.
             # a rigid fit to a misread board while boards are tried one by one: no pose from this start.
             return Pose.invalid("no pose: the starting pose puts corners behind a camera", mode,
                                 n_left=len(tl), n_right=len(tr), n_both=len(set(tl) & set(tr)))
