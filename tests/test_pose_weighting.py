@@ -3,6 +3,8 @@ plus the error a board's corners share) against Monte-Carlo spread, unusable cor
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -192,3 +194,32 @@ def test_model_covariance_sums_by_group_as_add_at_does() -> None:
         expected = np.zeros((int(groups.max()) + 1, 38, 6))
         np.add.at(expected, groups, values)
         assert np.array_equal(_sum_by_group(groups, values, int(groups.max()) + 1), expected)
+
+
+@pytest.mark.parametrize("lens", ["radtan", "rational"])
+def test_the_pinhole_pass_gives_what_project_gives(lens: str) -> None:
+    """refine_pose's one-pass residuals and Jacobian of a pinhole view (radtan, rational lens) against the same
+    terms through camera.project, to rounding; a point behind the camera is NaN in both."""
+    import cv2
+
+    from edgecal.pose.estimate import _views, corner_table
+    from edgecal.pose.refine import _projected_view, _view_terms
+
+    target, cams = robot_target(), stereo_cams()
+    if lens == "rational":
+        cams = replace(cams, right=replace(cams.right, lens="rational",
+                                           params=np.r_[cams.right.params, 0.02, -0.01, 0.005]))
+    R, t = true_pose()
+    left, right = render_detections(target, cams, R, t)
+    x = np.r_[cv2.Rodrigues(R)[0].ravel() + [0.01, -0.02, 0.005], t + [0.003, 0.002, -0.01]]
+    R_x, dR = cv2.Rodrigues(x[:3].reshape(3, 1))
+    dR = dR.reshape(3, 3, 3)
+    for v in _views(cams, target, corner_table(left, target), corner_table(right, target)):
+        assert v.camera.lens == ("rational" if lens == "rational" and v.camera is cams.right else "radtan")
+        r, J = _view_terms(R_x, dR, x[3:], v)
+        r_ref, J_ref = _projected_view(R_x, dR, x[3:], v)
+        assert np.abs(r - r_ref).max() < 1e-9 and np.abs(J - J_ref).max() < 1e-12 * np.abs(J_ref).max()
+    behind = x[3:] * [1.0, 1.0, -1.0]                # the robot as far behind the rig as it was in front
+    r, _J = _view_terms(R_x, dR, behind, v)
+    r_ref, _J = _projected_view(R_x, dR, behind, v)
+    assert np.array_equal(np.isnan(r), np.isnan(r_ref)) and np.isnan(r).any()
