@@ -490,8 +490,9 @@ def chess_filter(img: np.ndarray, pts: np.ndarray, rings: np.ndarray, thresholds
 def dedupe_in_order(pts: np.ndarray, radius: float) -> np.ndarray:
     """Indices of the points (M, 2) with no earlier point within ``radius`` pixels, in order (greedy: a
     point is dropped only by a kept one). A hash grid keeps it linear in M: cells of at least ``radius``
-    (every point within it lies in the 3x3 cells around), and about as many cells as points (cells of
-    ``radius`` itself, 0.75 px, over a 1280x800 frame's candidates filled 1.8 M cells per call)."""
+    (every point within it lies in the 3x3 cells around), about 16 per point over the points' extent (cells
+    of ``radius`` itself, 0.75 px, over a 1280x800 frame's candidates filled 1.8 M cells per call; one per
+    point put dozens of a noisy frame's candidates, crowded along its edges, in a cell searched for each)."""
     m = pts.shape[0]
     keep = np.zeros(m, np.bool_)
     if m == 0:
@@ -500,7 +501,7 @@ def dedupe_in_order(pts: np.ndarray, radius: float) -> np.ndarray:
     y0 = pts[:, 1].min()
     span_x = pts[:, 0].max() - x0
     span_y = pts[:, 1].max() - y0
-    cell = max(radius, 1e-6, math.sqrt((span_x + 1.0) * (span_y + 1.0) / m))
+    cell = max(radius, 1e-6, math.sqrt((span_x + 1.0) * (span_y + 1.0) / (16.0 * m)))
     nx = int(span_x / cell) + 1
     ny = int(span_y / cell) + 1
     head = np.full(nx * ny, -1, np.int64)  # kept points per cell as linked lists
