@@ -249,7 +249,8 @@ _HOMOGRAPHY_PROBE = np.c_[np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
                   outward: tuple[int, int], smooth: np.ndarray, fraction: float) -> np.ndarray | None:
     """Mean intensity of the squares just outside a grid line, in order along it, sampled ``fraction`` of a
-    grid step outwards (None: not measurable, e.g. outside the image or too short)."""
+    grid step outwards: one per pair of neighbouring labels of the line both in the grid (a square lies
+    between them; between labels two apart lies a corner, not a square). None: a square outside the image."""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
     ordered = sorted(line, key=lambda uv: uv[0] * along[0] + uv[1] * along[1])
@@ -266,16 +267,15 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
             outer.append(2.0 * p0 - p1)
         else:
             outer.append(3.0 * p0 - 3.0 * p1 + p2)
+    position = [uv[0] * along[0] + uv[1] * along[1] for uv in ordered]
     cells = []
     for k in range(len(ordered) - 1):
         a0, a1 = grid.get(ordered[k]), grid.get(ordered[k + 1])
         b0, b1 = outer[k], outer[k + 1]
-        if a0 is None or a1 is None or b0 is None or b1 is None:
+        if a0 is None or a1 is None or b0 is None or b1 is None or position[k + 1] - position[k] != 1:
             continue
         mid = 0.5 * (a0 + a1)
         cells.append(mid + fraction * (0.5 * (b0 + b1) - mid))
-    if len(cells) < 3:
-        return None
     hh, ww = smooth.shape
     vals = []
     for x, y in cells:
@@ -293,12 +293,18 @@ def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list
     A board's outermost squares meet its white margin in points the probe can take for X-corners (the
     margin is white on both sides, the background beyond may be dark). Such a line is geometrically a
     perfect grid row; what gives it away is the uniform margin beyond it. This is the positive evidence a
-    new outer line needs; squares that cannot be measured (outside the image) count as alternating.
+    new outer line needs; squares that cannot be measured (outside the image) count as alternating, but a
+    line with fewer than two squares between its confirmed corners has none: where a dark background
+    comes close behind a narrow margin, the probe confirms every other point of the margin's line (those
+    next to a black square), and three such points on a board of five columns made it a 5x5 grid that
+    matched no board (bench/live.py's robot sequences: the 5x4 board missed in 114 of 120 images).
     """
     for fraction in BEYOND_STEP_FRACTIONS:
         vals = _cells_beyond(grid, line, outward, smooth, fraction)
         if vals is None:
             return True
+        if len(vals) < 2:
+            return False
         diffs = np.diff(vals)
         alternating = np.sum(diffs[1:] * diffs[:-1] < 0)
         strong = np.abs(diffs) >= 0.5 * min_contrast
@@ -314,7 +320,7 @@ def squares_beyond_uniform(grid: dict[tuple[int, int], np.ndarray], line: list[t
     land anywhere; that is not uniform, and the line stays)."""
     for fraction in BEYOND_STEP_FRACTIONS:
         vals = _cells_beyond(grid, line, outward, smooth, fraction)
-        if vals is None or np.mean(np.abs(np.diff(vals)) < min_contrast) < 0.7:
+        if vals is None or len(vals) < 3 or np.mean(np.abs(np.diff(vals)) < min_contrast) < 0.7:
             return False
     return True
 
