@@ -253,7 +253,7 @@ class CovarianceTimer:
             if self.ablate:
                 n = len(corners)
                 return cc.CornerCovariances(np.broadcast_to(0.01 * np.eye(2), (n, 2, 2)).copy(), np.zeros(n),
-                                            [""] * n, np.zeros((n, 2)))
+                                            [""] * n, np.zeros((n, 2)), np.zeros(n))
             t0, c0 = time.perf_counter(), time.thread_time()
             out = original(grey, smooth, smoothing_sigma, corners, *args, **kwargs)
             self.wall_s.append(time.perf_counter() - t0)

@@ -61,6 +61,40 @@ def test_model_covariance_matches_monte_carlo_spread() -> None:
     assert np.all((ratio > 0.75) & (ratio < 1.25)), ratio
 
 
+def test_an_alternating_light_shift_is_modelled_as_such() -> None:
+    """Each board's corners shifted by one vector times +1/-1 in their checkerboard pattern (the X-junction
+    fit's light shift, Detection.alternating_px2, 3x the independent variance) on top of independent errors:
+    the pose's covariance matches the spread (NEES 6). Weighting it as independent per-corner error instead
+    (the same total covariance, no alternating part) makes the pose's sigma too large."""
+    target, cams = robot_target(), stereo_cams()
+    R, t = true_pose()
+    rng = np.random.default_rng(5)
+    left0, right0 = render_detections(target, cams, R, t)
+    own_px2, alternating_px2 = 0.05 ** 2, 3 * 0.05 ** 2
+
+    def shifted(dets: list[Detection], modelled: bool) -> list[Detection]:
+        out = []
+        for d in dets:
+            n = len(d.corners)
+            parity = 1.0 - 2.0 * (np.asarray(d.ids).sum(axis=1) % 2)
+            error = (rng.normal(0, np.sqrt(own_px2), (n, 2))
+                     + parity[:, None] * rng.normal(0, np.sqrt(alternating_px2), 2))
+            cov = np.broadcast_to((own_px2 + alternating_px2) * np.eye(2), (n, 2, 2)).copy()
+            out.append(Detection(d.board, d.corners + error, d.ids, d.quality, d.grid, covariance=cov,
+                                 unusable=[""] * n, shared_px2=np.zeros(n),
+                                 alternating_px2=np.full(n, alternating_px2) if modelled else None))
+        return out
+
+    for modelled, low, high in ((True, 5.0, 7.0), (False, 0.0, 4.0)):
+        nees = []
+        for _ in range(200):
+            pose = estimate_pose(shifted(left0, modelled), shifted(right0, modelled), target, cams)
+            assert pose.valid, pose.reason
+            e = np.concatenate([pose.t_m - t, rotation_error_rad(pose.R, R)])
+            nees.append(e @ np.linalg.solve(pose.covariance, e))
+        assert low < np.mean(nees) < high, (modelled, np.mean(nees))
+
+
 def test_weighting_by_the_corner_covariance_is_more_accurate() -> None:
     """Every third corner 10x noisier than the others: the weighted fit (the detector's covariances)
     beats the fit that weighs every corner alike."""

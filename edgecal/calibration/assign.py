@@ -93,7 +93,8 @@ def _corner_set(dets: list[Detection], target: Target, choice: tuple[tuple[Board
         ids = rotate_ids(np.asarray(det.ids, dtype=np.int64).reshape(-1, 2)[ok], src.cols, src.rows, deg)
         objs.append(board.target_points_mm(ids))
         imgs.append(np.asarray(det.corners, dtype=np.float64).reshape(-1, 2)[ok])
-        covs.append(None if det.covariance is None else without_light_shift(det.covariance, det.light_gradient)[ok])
+        covs.append(None if det.covariance is None else without_light_shift(det.covariance, det.light_gradient,
+                                                                            det.alternating_px2)[ok])
         keys += [(board.name, int(c), int(r)) for c, r in ids]
     known = [c for c in covs if c is not None]
     cov = np.concatenate(known) if len(known) == len(covs) else None

@@ -178,7 +178,7 @@ def add_covariances(detections: list[Detection], level: Level, p: DetectorParams
         end = start + len(d.corners)
         d.covariance, d.shared_px2, d.unusable = cc.covariance[start:end], cc.shared_px2[start:end], \
             cc.unusable[start:end]
-        d.light_gradient = cc.light_gradient[start:end]
+        d.light_gradient, d.alternating_px2 = cc.light_gradient[start:end], cc.alternating_px2[start:end]
         start = end
 
 

@@ -1004,6 +1004,12 @@ def grid_line_angles(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
     return out
 
 
+def xjunction_disc_radius(spacing: np.ndarray) -> np.ndarray:
+    """(N,) px: the X-junction fit's disc away from a board's rim, _XJ_RADIUS_PER_SPACING x the local square
+    size ``spacing`` (N,) px, within _XJ_RADIUS_PX."""
+    return np.clip(_XJ_RADIUS_PER_SPACING * np.asarray(spacing, dtype=np.float64).reshape(-1), *_XJ_RADIUS_PX)
+
+
 def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """(N,) px: the X-junction fit's disc for each corner of a grid (``xy`` (N, 2), ``ids`` (N, 2): col, row),
     _XJ_RADIUS_PER_SPACING x its nearest-corner distance (_XJ_RADIUS_PX); on the grid's rim no further than
@@ -1011,7 +1017,7 @@ def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) 
     ``image_smooth`` (_window_reaches_edge; the board's edge beyond would pull the corner outwards), and 0
     (no fit) where that cannot be told."""
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    radius = np.clip(_XJ_RADIUS_PER_SPACING * nearest_spacing(xy), *_XJ_RADIUS_PX)
+    radius = xjunction_disc_radius(nearest_spacing(xy))
     ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
     rim = np.flatnonzero(on_board_rim(ids))
     if not len(rim):

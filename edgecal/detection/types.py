@@ -27,6 +27,8 @@ class Detection:
              board share (CornerCovariances); NaN where unusable, None when not computed.
     light_gradient: (N, 2) float64, the gradient of log light (1/px) over each corner's board, read off its
              squares (CornerCovariances); zeros where it was not read, None when not computed.
+    alternating_px2: (N,) float64, the part of each corner's covariance (px^2 per axis) that is its board's
+             light shift in the checkerboard pattern of its corners (CornerCovariances); None when not computed.
     """
 
     board: str
@@ -40,6 +42,7 @@ class Detection:
     unusable: list[str] = field(default_factory=list)
     shared_px2: np.ndarray | None = None
     light_gradient: np.ndarray | None = None
+    alternating_px2: np.ndarray | None = None
 
     def usable(self) -> np.ndarray:
         """(N,) bool: corners with a positive-definite covariance (all when none was computed)."""

@@ -27,7 +27,10 @@ from edgecal.targets import Target
 #   field lights the boards from one side and both cameras see it alike, so the shift it puts on all corners
 #   (corner_covariance.LIGHT_SHIFT_PX2 x grad log L) moves the whole robot sideways. Without it the searched
 #   pose of the robot sequence with a strong light gradient (bench/live.py --scene other) had x and y errors
-#   of 1.6 and 1.3 sigma and mean NEES 21.8.
+#   of 1.6 and 1.3 sigma and mean NEES 21.8;
+# - each board's light shift in the checkerboard pattern of its corners (Detection.alternating_px2: the
+#   X-junction fit's corners move with their polarity), which cancels over neighbouring corners: weighted
+#   as independent errors instead, the other rig's searched pose had sigma 1.4x too large (mean NEES 2.7).
 
 
 def unambiguous_detections(detections: Sequence[Detection], target: Target) -> list[Detection]:
@@ -55,22 +58,23 @@ def corner_table(detections: Sequence[Detection], target: Target) -> dict[tuple[
 
 
 def corner_covariances(detections: Sequence[Detection], target: Target
-                       ) -> dict[tuple[str, int, int], tuple[np.ndarray, float, np.ndarray]]:
+                       ) -> dict[tuple[str, int, int], tuple[np.ndarray, float, np.ndarray, float]]:
     """(board, col, row) -> (the detector's 2x2 covariance (px^2), its board's shared part (px^2 per axis),
-    the light gradient there (2,), 1/px; zero when the detection has none) of every usable corner that has
-    a covariance."""
-    table: dict[tuple[str, int, int], tuple[np.ndarray, float, np.ndarray]] = {}
+    the light gradient there (2,), 1/px, its board's alternating part (px^2 per axis); zero when the
+    detection has none) of every usable corner that has a covariance."""
+    table: dict[tuple[str, int, int], tuple[np.ndarray, float, np.ndarray, float]] = {}
     for det in unambiguous_detections(detections, target):
         if det.covariance is None:
             continue
         n = len(det.corners)
         shared = [0.0] * n if det.shared_px2 is None else det.shared_px2.tolist()
         light = np.zeros((n, 2)) if det.light_gradient is None else det.light_gradient
+        alternating = [0.0] * n if det.alternating_px2 is None else det.alternating_px2.tolist()
         # ids and flags as Python lists: one conversion, not one per corner
-        for (c, r), cov, shared_px2, g, ok in zip(np.asarray(det.ids).reshape(-1, 2).tolist(), det.covariance,
-                                                  shared, light, det.usable().tolist()):
+        for (c, r), cov, shared_px2, g, alt, ok in zip(np.asarray(det.ids).reshape(-1, 2).tolist(), det.covariance,
+                                                       shared, light, alternating, det.usable().tolist()):
             if ok:
-                table[(det.board, c, r)] = (cov, shared_px2, g)
+                table[(det.board, c, r)] = (cov, shared_px2, g, alt)
     return table
 
 
@@ -88,13 +92,17 @@ def robot_points_m(target: Target, keys: Sequence[tuple[str, int, int]]) -> np.n
     return out
 
 
-def _covariances(keys: list, covs: dict, noise_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N, 2, 2) covariances, (N,) shared parts and (N, 2) light gradients of the corners ``keys``: the
-    detector's, else ``noise_px`` on both axes and no shared part or light gradient."""
-    fallback = (np.eye(2) * noise_px ** 2, 0.0, np.zeros(2))
+def _covariances(keys: list, covs: dict, noise_px: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Of the corners ``keys``: (N, 2, 2) covariances less their alternating part (what the fit weighs by),
+    (N,) shared parts, (N, 2) light gradients and (N,) alternating parts: the detector's, else ``noise_px``
+    on both axes and none of the others."""
+    fallback = (np.eye(2) * noise_px ** 2, 0.0, np.zeros(2), 0.0)
     rows = [covs.get(k, fallback) for k in keys]
-    return (np.array([r[0] for r in rows]).reshape(-1, 2, 2), np.array([r[1] for r in rows], dtype=np.float64),
-            np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 2))
+    alternating = np.array([r[3] for r in rows], dtype=np.float64)
+    cov = np.array([r[0] for r in rows]).reshape(-1, 2, 2) - alternating[:, None, None] * np.eye(2)
+    return (cov, np.array([r[1] for r in rows], dtype=np.float64),
+            np.array([r[2] for r in rows], dtype=np.float64).reshape(-1, 2), alternating)
 
 
 def _views(rig: StereoRig, target: Target, left: dict, right: dict, covs: tuple[dict, dict] = ({}, {}),
@@ -107,14 +115,17 @@ def _views(rig: StereoRig, target: Target, left: dict, right: dict, covs: tuple[
     return vl, vr
 
 
-def shared_error(xy: np.ndarray, shared_px2: np.ndarray, groups: np.ndarray, light: np.ndarray
+def shared_error(xy: np.ndarray, shared_px2: np.ndarray, groups: np.ndarray, light: np.ndarray,
+                 alternating_px2: np.ndarray | None = None, parity: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """The errors corners share (LIGHT_SHIFT_PX2, corner_covariance.SHARED_FRACTION) as K = 2 + 6 G parameters
-    over all M corners: their basis (M, 2, K) - the common offset along the eigenvectors of its covariance,
-    then per group (a board in one camera) its affine error: offset x, y, the linear map's four entries
-    times the corner's offset from the group's centroid over their RMS distance - and their variances (K,)
-    px^2. xy (M, 2) pixels, shared_px2 (M,) the corners' shared parts, groups (M,) 0..G-1, light (M, 2)
-    the gradient of log light at each corner (1/px)."""
+    """The errors corners share (LIGHT_SHIFT_PX2, corner_covariance.SHARED_FRACTION and XJUNCTION_LIGHT_PX)
+    as K = 2 + 8 G parameters over all M corners: their basis (M, 2, K) - the common offset along the
+    eigenvectors of its covariance, then per group (a board in one camera) its affine error: offset x, y, the
+    linear map's four entries times the corner's offset from the group's centroid over their RMS distance -
+    and its alternating shift x, y (times the corner's ``parity``, +1 or -1 by (col + row) mod 2) - and their
+    variances (K,) px^2. xy (M, 2) pixels, shared_px2 (M,) the corners' shared parts, groups (M,) 0..G-1,
+    light (M, 2) the gradient of log light at each corner (1/px), alternating_px2 (M,) the corners'
+    alternating parts (default none)."""
     m = len(xy)
     n_groups = int(groups.max()) + 1 if m else 0
     n = np.maximum(np.bincount(groups, minlength=n_groups), 1)
@@ -123,19 +134,23 @@ def shared_error(xy: np.ndarray, shared_px2: np.ndarray, groups: np.ndarray, lig
     d = xy - (sums / n[:, None])[groups]
     radius = np.sqrt(np.bincount(groups, weights=np.sum(d * d, axis=1), minlength=n_groups) / n)
     q = d / np.maximum(radius, 1e-9)[groups][:, None]
-    basis = np.zeros((m, 2, 2 + 6 * n_groups))
-    var = np.zeros(2 + 6 * n_groups)
+    basis = np.zeros((m, 2, 2 + 8 * n_groups))
+    var = np.zeros(2 + 8 * n_groups)
     if m:
         # the common offset's covariance kappa^2 mean(g g^T), in its eigenbasis (uncorrelated parameters)
         w, v = np.linalg.eigh(LIGHT_SHIFT_PX2 ** 2 * np.einsum("ni,nj->ij", light, light) / m)
         basis[:, :, :2] = v[None, :, :]
         var[:2] = np.maximum(w, 0.0)
     rows = np.arange(m)
-    col = 2 + 6 * groups
+    col = 2 + 8 * groups
     basis[rows, 0, col] = basis[rows, 1, col + 1] = 1.0
     basis[rows, 0, col + 2], basis[rows, 0, col + 3] = q[:, 0], q[:, 1]
     basis[rows, 1, col + 4], basis[rows, 1, col + 5] = q[:, 0], q[:, 1]
-    var[2:] = np.repeat(np.bincount(groups, weights=shared_px2, minlength=n_groups) / n, 6)
+    per_group = var[2:].reshape(n_groups, 8)
+    per_group[:, :6] = (np.bincount(groups, weights=shared_px2, minlength=n_groups) / n)[:, None]
+    if alternating_px2 is not None and parity is not None:
+        basis[rows, 0, col + 6] = basis[rows, 1, col + 7] = parity
+        per_group[:, 6:] = (np.bincount(groups, weights=alternating_px2, minlength=n_groups) / n)[:, None]
     return basis, var
 
 
@@ -152,8 +167,12 @@ def _fit_covariance(J: np.ndarray, res: np.ndarray, views: list[CameraView], tl:
     shared = np.concatenate([np.zeros(v.n) if v.image_shared_px2 is None else v.image_shared_px2 for v in views])
     light = np.concatenate([np.zeros((v.n, 2)) if v.image_light_gradient is None else v.image_light_gradient
                             for v in views])
+    alternating = np.concatenate([np.zeros(v.n) if v.image_alternating_px2 is None else v.image_alternating_px2
+                                  for v in views])
+    parity = np.array([1.0 - 2.0 * ((c + r) % 2) for c, r in [(k[1], k[2]) for k in sorted(tl)]
+                       + [(k[1], k[2]) for k in sorted(tr)]])
     xy = np.concatenate([v.image_points_px for v in views])
-    basis, var = shared_error(xy, shared, groups, light)
+    basis, var = shared_error(xy, shared, groups, light, alternating, parity)
     return model_covariance(J, cov_px2, np.zeros(len(xy), dtype=np.int64), basis, var[None, :])
 
 

@@ -21,7 +21,9 @@ class CameraView:
     covariance (the detector's); with it the refinement minimises the whitened residuals, without it
     every corner weighs the same. ``image_shared_px2`` (N,) is the part of each covariance (px^2 per axis)
     that the corners of its board share (Detection.shared_px2), ``image_light_gradient`` (N, 2) the
-    gradient of log light there (Detection.light_gradient).
+    gradient of log light there (Detection.light_gradient), ``image_alternating_px2`` (N,) its board's light
+    shift in the checkerboard pattern of its corners (Detection.alternating_px2), which
+    ``image_covariance_px2`` then leaves out (a fit barely sees it).
     """
 
     camera: CameraModel
@@ -32,6 +34,7 @@ class CameraView:
     image_covariance_px2: np.ndarray | None = None
     image_shared_px2: np.ndarray | None = None
     image_light_gradient: np.ndarray | None = None
+    image_alternating_px2: np.ndarray | None = None
 
     @property
     def n(self) -> int:
