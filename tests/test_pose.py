@@ -105,18 +105,26 @@ def test_unknown_boards_are_ignored() -> None:
     assert pose.valid and "other" not in pose.boards
 
 
-def test_a_board_seen_twice_in_one_image_is_left_out() -> None:
-    """A second board of the same size under the same name (the detector's copy 1) is not mixed in: that
-    board's corners are left out of the image it appears twice in, and the pose comes from the rest."""
+def test_a_board_seen_twice_in_one_image_is_taken_in_the_copy_the_other_boards_explain() -> None:
+    """A second board of the same size under the same name (the detector's copy 1; e.g. a part of an edge-on
+    board of another size) is not mixed in: the pose from the other boards picks the copy it explains, and
+    when it explains neither, that board's corners are left out of that image."""
     target, cams = robot_target(), stereo_cams()
     R, t = true_pose()
     left, right = render_detections(target, cams, R, t)
     first = left[0]
     elsewhere = Detection(first.board, first.corners + 40.0, first.ids, first.quality, first.grid, copy=1)
-    pose = estimate_pose(left + [elsewhere], right, target, cams)
+    full = estimate_pose(left, right, target, cams)
+    for order in ([elsewhere] + left, left + [elsewhere]):
+        pose = estimate_pose(order, right, target, cams)
+        assert pose.valid and pose.n_left == full.n_left and not pose.rejected
+        assert abs(pose.rms_px - full.rms_px) < 1e-6
+    # neither copy where the pose puts that board: left out as ambiguous, not fitted as a misfit
+    further = Detection(first.board, first.corners - 40.0, first.ids, first.quality, first.grid, copy=2)
+    pose = estimate_pose([elsewhere, further] + left[1:], right, target, cams)
     clean = estimate_pose(left[1:], right, target, cams)
     assert pose.valid and clean.valid
-    assert pose.n_left == clean.n_left and not pose.rejected     # left out as ambiguous, not fitted as a misfit
+    assert pose.n_left == clean.n_left and not pose.rejected
     assert abs(pose.rms_px - clean.rms_px) < 1e-9
 
 
