@@ -72,9 +72,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _missing_package(exc: ImportError) -> int:
+    """One line for a Python package this environment lacks (an install older than the code, a broken
+    venv): every command's module is imported to build the parser, so without this one missing package
+    of one command ends every command in a traceback."""
+    name = exc.name or str(exc)
+    print(f"edgecal: error: the Python package {name!r} is missing from this environment: reinstall edgecal "
+          "(pip install -e . in its checkout, or make .venv/.installed)", file=sys.stderr)
+    return 2
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``edgecal`` console script."""
-    parser = build_parser()
+    try:
+        parser = build_parser()
+    except ImportError as exc:
+        return _missing_package(exc)
     args = parser.parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s", stream=sys.stderr)

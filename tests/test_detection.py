@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -240,6 +241,23 @@ def test_params_file_is_validated_by_field() -> None:
 
 def _cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "edgecal", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_cli_missing_package_is_one_line(tmp_path) -> None:
+    """An environment without one of edgecal's packages (here matplotlib, which only calibrate's report
+    draws with, made unimportable by a stand-in on PYTHONPATH) gives every command one line naming the
+    package and what to do, exit 2, not a traceback from building the parser."""
+    stand_in = tmp_path / "site" / "matplotlib"
+    stand_in.mkdir(parents=True)
+    (stand_in / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'matplotlib'\", "
+                                          "name='matplotlib')\n")
+    image = tmp_path / "notes.png"
+    image.write_text("not an image\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path / "site"), *sys.path])}
+    res = subprocess.run([sys.executable, "-m", "edgecal", "detect", "--board", "9x6", str(image)],
+                         capture_output=True, text=True, env=env)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and "'matplotlib'" in res.stderr
 
 
 def test_cli_detect_prints_json_lines_and_draws(tmp_path) -> None:
