@@ -253,7 +253,8 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
     between them; between labels two apart lies a corner, not a square). None: a square outside the image."""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
-    ordered = sorted(line, key=lambda uv: uv[0] * along[0] + uv[1] * along[1])
+    place = {uv: uv[0] * along[0] + uv[1] * along[1] for uv in line}
+    ordered = sorted(line, key=place.__getitem__)
     # Each line point stepped one square outwards, extrapolated along its own grid line (quadratic when two
     # inner points are known: fisheye lenses bend the lines too much for one homography to reach outside).
     outer: list[np.ndarray | None] = []
@@ -267,12 +268,11 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
             outer.append(2.0 * p0 - p1)
         else:
             outer.append(3.0 * p0 - 3.0 * p1 + p2)
-    position = [uv[0] * along[0] + uv[1] * along[1] for uv in ordered]
     cells = []
     for k in range(len(ordered) - 1):
         a0, a1 = grid.get(ordered[k]), grid.get(ordered[k + 1])
         b0, b1 = outer[k], outer[k + 1]
-        if a0 is None or a1 is None or b0 is None or b1 is None or position[k + 1] - position[k] != 1:
+        if a0 is None or a1 is None or b0 is None or b1 is None or place[ordered[k + 1]] - place[ordered[k]] != 1:
             continue
         mid = 0.5 * (a0 + a1)
         cells.append(mid + fraction * (0.5 * (b0 + b1) - mid))

@@ -161,16 +161,15 @@ def _fit_covariance(J: np.ndarray, res: np.ndarray, views: list[CameraView], tl:
     if settings.covariance_scale != "model":
         return pose_covariance(J, res, settings.covariance_scale, settings.corner_noise_px)
     # Groups: a board in one camera, in the residuals' order (left view, then right view; keys sorted).
-    names = [("left", k[0]) for k in sorted(tl)] + [("right", k[0]) for k in sorted(tr)]
-    _, groups = np.unique(np.array([f"{a}/{b}" for a, b in names]), return_inverse=True)
+    keys = [("left", k) for k in sorted(tl)] + [("right", k) for k in sorted(tr)]
+    _, groups = np.unique(np.array([f"{side}/{k[0]}" for side, k in keys]), return_inverse=True)
     cov_px2 = np.concatenate([v.image_covariance_px2 for v in views])
     shared = np.concatenate([np.zeros(v.n) if v.image_shared_px2 is None else v.image_shared_px2 for v in views])
     light = np.concatenate([np.zeros((v.n, 2)) if v.image_light_gradient is None else v.image_light_gradient
                             for v in views])
     alternating = np.concatenate([np.zeros(v.n) if v.image_alternating_px2 is None else v.image_alternating_px2
                                   for v in views])
-    parity = np.array([1.0 - 2.0 * ((c + r) % 2) for c, r in [(k[1], k[2]) for k in sorted(tl)]
-                       + [(k[1], k[2]) for k in sorted(tr)]])
+    parity = np.array([1.0 - 2.0 * ((k[1] + k[2]) % 2) for _side, k in keys])
     xy = np.concatenate([v.image_points_px for v in views])
     basis, var = shared_error(xy, shared, groups, light, alternating, parity)
     return model_covariance(J, cov_px2, np.zeros(len(xy), dtype=np.int64), basis, var[None, :])
@@ -379,10 +378,8 @@ def _with_resolved_copies(pose: Pose, left: Sequence[Detection], right: Sequence
     reported as that board: 6-9 of 120 images of bench/live.py's robot sequences lost the real one.)"""
     names = {b.name for b in target.boards}
     for side, dets in (("left", left), ("right", right)):
-        counts: dict[str, int] = {}
-        for det in dets:
-            counts[det.board] = counts.get(det.board, 0) + 1
-        for board in sorted(b for b, c in counts.items() if c > 1 and b in names):
+        once = {d.board for d in unambiguous_detections(dets, target)}
+        for board in sorted(({d.board for d in dets} & names) - once):
             best = None
             for det in (d for d in dets if d.board == board):
                 copy, copy_covs = corner_table([det], target), corner_covariances([det], target)
