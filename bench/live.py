@@ -261,8 +261,8 @@ class CovarianceTimer:
             return out
 
         for name, mod in list(sys.modules.items()):
-            if name.startswith("edgecal.detection.") and getattr(mod, "corner_covariance", None) is original \
-                    and mod is not cc:
+            # the module itself too: its add_board_covariances looks corner_covariance up there
+            if name.startswith("edgecal.detection.") and getattr(mod, "corner_covariance", None) is original:
                 self._saved.append((mod, original))
                 mod.corner_covariance = timed
         return self
@@ -299,7 +299,9 @@ TRACKED_STAGES = (
     ("~ ~ ~ beyond_border", "edgecal.detection.tracking", "beyond_border"),
     ("~ ~ ~ refine_rim", "edgecal.detection.tracking", "refine_rim"),
     ("~ ~ ~ ~ cornerSubPix (rim)", "edgecal.detection.subpixel", "refine_corners"),
-    ("~ ~ ~ corner_covariance", "edgecal.detection.tracking", "corner_covariance"),
+    ("~ ~ ~ saddle fit", "edgecal.detection.tracking", "saddle_refine"),
+    ("~ ~ ~ X-junction fit", "edgecal.detection.tracking", "polish_corners"),
+    ("~ ~ ~ corner_covariance", "edgecal.detection.tracking", "add_board_covariances|corner_covariance"),
     ("~ ~ ~ covariance noise (whole image)", "edgecal.detection.tracking", "covariance_noise_sigma"),
     ("~ ~ search_near (lost boards)", "edgecal.stream.frame_pipeline", "search_near"),
     ("~ ~ estimate_pose", "edgecal.stream.frame_pipeline", "estimate_pose"),

@@ -128,6 +128,27 @@ def test_tracking_confirms_displaced_predictions_to_subpixel(robot) -> None:
     assert all(d.board in {p.board.name for p in preds} for d in found)
 
 
+def test_tracked_corners_are_refined_as_the_searched_ones(robot) -> None:
+    # Verification's cornerSubPix corners then go through the full search's refiner (the saddle and the
+    # X-junction fits): the same corners as the search's, and as close to the truth. (With cornerSubPix
+    # alone they were 0.018 px off the search's (median) and 4x further from the truth on this render.)
+    cfg, frame, image, preds = left_view(robot)
+    searched = {(d.board, int(c), int(r)): xy for d in detect(image, cfg.target)
+                for (c, r), xy, ok in zip(d.ids, d.corners, d.usable()) if ok}
+    tracked = {(d.board, int(c), int(r)): (xy, cov) for d in track_boards(image, [
+        CornerPrediction(p.board, p.ids, p.xy + np.array([0.3, -0.2])) for p in preds]) for (c, r), xy, cov in
+        zip(d.ids, d.corners, d.covariance)}
+    seen = truth_corners(frame, "left")
+    common = sorted(set(searched) & set(tracked))
+    assert len(common) > 0.8 * len(searched)
+    apart = np.array([np.linalg.norm(tracked[k][0] - searched[k]) for k in common])
+    err_tracked = np.array([np.linalg.norm(tracked[k][0] - seen[k]) for k in common])
+    err_searched = np.array([np.linalg.norm(searched[k] - seen[k]) for k in common])
+    assert np.median(apart) < 0.003
+    assert np.sqrt(np.mean(err_tracked ** 2)) < 1.1 * np.sqrt(np.mean(err_searched ** 2))
+    assert all(np.all(np.linalg.eigvalsh(tracked[k][1]) > 0) for k in common)
+
+
 def test_tracking_rejects_boards_that_are_not_there(robot) -> None:
     cfg, frame, image, preds = left_view(robot)
     # Ids off by one column: every corner lands on a real corner, but the square colours are inverted.
@@ -208,20 +229,26 @@ def test_tracker_predicts_only_from_a_recent_valid_pose(robot) -> None:
 
 
 def test_loop_tracks_and_searches_again_when_the_robot_jumps(robot, tmp_path: Path) -> None:
-    """Frames 0, 1, 2 of the sequence, then frame 0 again (the robot jumps back): the loop searches frame 0,
-    tracks 1 and 2, finds that the prediction for the jump does not hold, and searches that frame."""
+    """Frames 0, 1, 2 of the sequence, then frame 0 moved by a quarter of the image (the robot jumps): the
+    loop searches frame 0, tracks 1 and 2, finds that the prediction for the jump does not hold, and
+    searches that frame. (Frame 0 as it was is too close to the prediction: the search around the
+    predicted corners finds its boards, and the frame is rightly tracked.)"""
     folder, _truth, _cfg = robot
     jump = tmp_path / "jump"
     for side in ("left", "right"):
         (jump / side).mkdir(parents=True)
         for k, src in enumerate((0, 1, 2, 0)):
-            (jump / side / f"{k:06d}.png").write_bytes((folder / side / f"{src:06d}.png").read_bytes())
+            image = cv2.imread(str(folder / side / f"{src:06d}.png"), cv2.IMREAD_GRAYSCALE)
+            if k == 3:
+                image = np.roll(image, -image.shape[1] // 4, axis=1)
+            cv2.imwrite(str(jump / side / f"{k:06d}.png"), image)
     (jump / "rig.yaml").write_bytes((folder / "rig.yaml").read_bytes())
     cfg = write_config(tmp_path / "live.yaml", jump, free_endpoint(),
                        source_extra={"pace": "fast", "latest_only": False}, loop={"stop_at_end": True})
     loop = LiveLoop(load_live_config(cfg))
     assert loop.run() == 0
-    assert loop.stats.frames == 4 and loop.stats.poses_valid == 4
+    # (the moved frame's pose need not be valid: the move cuts a board and breaks the rig's geometry)
+    assert loop.stats.frames == 4 and loop.stats.poses_valid >= 3
     assert loop.stats.tracked_frames == 2
 
 

@@ -55,6 +55,7 @@ from edgecal.detection.subpixel import (
     subpixel_window,
     xjunction_disc_radius,
 )
+from edgecal.detection.types import Detection
 
 # Columns of the per-corner window statistics returned by window_statistics.
 W_AXX, W_AXY, W_AYY = 0, 1, 2          # A = sum w g g^T (grey levels^2 per pixel^2)
@@ -645,7 +646,8 @@ class CornerCovariances(NamedTuple):
 
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
                       spacing: np.ndarray | None = None, noise_sigma: float | None = None, *, refiner: str,
-                      steps: np.ndarray | None = None, boards: np.ndarray | None = None) -> CornerCovariances:
+                      steps: np.ndarray | None = None, boards: np.ndarray | None = None,
+                      xjunction_fitted: np.ndarray | None = None) -> CornerCovariances:
     """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, the part its board's corners share,
     and why a corner is unusable (CornerCovariances).
 
@@ -658,7 +660,8 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     position and gets its covariance. steps: (N, 2, 2) the board's local steps to the next column and row
     (grid_steps), for the saddle fit's model error (default: read off the fit); boards: (N,) int, which
     board each corner is on: the light field, smooth over a board, is averaged over its corners (default:
-    each corner alone).
+    each corner alone). xjunction_fitted: (N,) bool, refiner "xjunction": the corners its fit placed
+    (Detection.xjunction_fitted; default all); the others get the saddle fit's covariance.
     """
     if refiner not in REFINERS:
         raise ValueError(f"unknown refiner {refiner!r} ({', '.join(REFINERS)})")
@@ -702,8 +705,11 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
             g2[read] = np.maximum(np.sum(light[read] ** 2, axis=1)
                                   - noise2 * (sd[read, S_LNXX] + sd[read, S_LNYY]) / sd[read, S_LEVEL] ** 2, 0.0)
             light_px = XJUNCTION_LIGHT_PX * xjunction_disc_radius(spacing) * np.sqrt(g2)
-            alternating[fitted] = light_px[fitted] ** 2
-            cov[fitted] = _xjunction_covariance(sd[fitted], noise2, light_px[fitted])
+            placed = fitted if xjunction_fitted is None else fitted & np.asarray(xjunction_fitted, bool).reshape(n)
+            alternating[placed] = light_px[placed] ** 2
+            cov[placed] = _xjunction_covariance(sd[placed], noise2, light_px[placed])
+            held = fitted & ~placed            # where the X-junction fit did not run: the saddle fit's corner
+            cov[held] = _saddle_covariance(sd[held], noise2)
         else:
             cov[fitted] = _saddle_covariance(sd[fitted], noise2)
         shared_fraction[fitted] = SHARED_FRACTION["saddle"]
@@ -865,3 +871,30 @@ def grid_steps(ids: np.ndarray, corners: np.ndarray) -> np.ndarray:
         both = 0.5 * (ahead + behind)
         out[:, k] = np.where(np.isfinite(both), both, np.where(np.isfinite(ahead), ahead, behind))
     return out
+
+
+def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float,
+                    noise_sigma: float, refiner: str, origin: np.ndarray | None = None,
+                    spacing: list[np.ndarray] | None = None) -> None:
+    """Fill in each detection's covariance, shared_px2, alternating_px2, light_gradient and unusable (one
+    corner_covariance call for all): ``detections`` with corners in image pixels, refined by ``refiner`` on
+    ``grey`` (a window of the image whose top-left pixel is ``origin``, default (0, 0)) and its ``smooth``
+    image; ``noise_sigma`` covariance_noise_sigma of the whole image; ``spacing`` per detection the square
+    size the refinement window came from (default: nearest_spacing of its corners)."""
+    if not detections:
+        return
+    origin = np.zeros(2) if origin is None else np.asarray(origin, dtype=np.float64)
+    xy = np.concatenate([d.corners for d in detections]) - origin
+    windows = np.concatenate(spacing if spacing is not None else [nearest_spacing(d.corners) for d in detections])
+    steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
+    boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
+    placed = [np.ones(len(d.corners), bool) if d.xjunction_fitted is None else d.xjunction_fitted for d in detections]
+    cc = corner_covariance(grey, smooth, smoothing_sigma, xy, windows, noise_sigma, refiner=refiner, steps=steps,
+                           boards=boards, xjunction_fitted=np.concatenate(placed))
+    start = 0
+    for d in detections:
+        end = start + len(d.corners)
+        d.covariance, d.shared_px2, d.unusable = cc.covariance[start:end], cc.shared_px2[start:end], \
+            cc.unusable[start:end]
+        d.light_gradient, d.alternating_px2 = cc.light_gradient[start:end], cc.alternating_px2[start:end]
+        start = end

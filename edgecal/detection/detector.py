@@ -29,7 +29,7 @@ from edgecal.detection.candidates import (
     snap_to_saddle,
 )
 from edgecal.detection.completion import complete_grid, trim_false_edges
-from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma, grid_steps
+from edgecal.detection.corner_covariance import add_board_covariances, covariance_noise_sigma
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
 from edgecal.detection.ordering import assign_ids, grid_is_regular
@@ -162,24 +162,10 @@ def _add_bloomed_boards(grey: np.ndarray, target: Target, p: DetectorParams, deb
 
 
 def add_covariances(detections: list[Detection], level: Level, p: DetectorParams) -> None:
-    """Fill in covariance and unusable of ``detections`` (corners refined on ``level`` by ``p``'s refiner), one
-    call for all."""
-    if not detections:
-        return
-    xy = np.concatenate([d.corners for d in detections]) - level.origin
-    spacing = np.concatenate([nearest_spacing(d.corners) for d in detections])
-    noise = covariance_noise_sigma(level.image)
-    steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
-    boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
-    cc = corner_covariance(level.grey, level.smooth, level.smoothing_sigma, xy, spacing, noise,
-                           refiner=p.subpixel_refiner, steps=steps, boards=boards)
-    start = 0
-    for d in detections:
-        end = start + len(d.corners)
-        d.covariance, d.shared_px2, d.unusable = cc.covariance[start:end], cc.shared_px2[start:end], \
-            cc.unusable[start:end]
-        d.light_gradient, d.alternating_px2 = cc.light_gradient[start:end], cc.alternating_px2[start:end]
-        start = end
+    """Fill in the covariances of ``detections``, corners refined on ``level`` by ``p``'s refiner
+    (corner_covariance.add_board_covariances)."""
+    add_board_covariances(detections, level.grey, level.smooth, level.smoothing_sigma,
+                          covariance_noise_sigma(level.image), p.subpixel_refiner, level.origin)
 
 
 def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[DetectionDebug, Level]:
@@ -274,7 +260,7 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
                               level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
         if len(grown) > len(xy):
             return None
-        xy = polish_corners(level.grey, level.smooth, xy, det.ids, p)
+        xy, det.xjunction_fitted = polish_corners(level.grey, level.smooth, xy, det.ids, p)
         det.corners = xy + level.origin
         det.quality = _corner_quality(level, xy, p)
     return (DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
@@ -400,11 +386,13 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
+        fitted = np.zeros(len(xy), dtype=bool)
         if not provisional:  # (a provisional board's corners are refined again at full resolution)
-            xy = polish_corners(level.grey, smooth, xy, ids, p)
+            xy, fitted = polish_corners(level.grey, smooth, xy, ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
-        debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows)))
+        debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows),
+                                          xjunction_fitted=fitted[order]))
         used_boards.add(board.name)
     number_copies(debug.detections)
     for note in notes:

@@ -794,14 +794,15 @@ def _xj_sign(x0: float, y0: float, t1: float, t2: float, x: float, y: float) -> 
 # fast maths without assuming finite values: the NaN checks of a failed solve must stay
 @njit(cache=True, nogil=True, fastmath={"contract", "afn", "reassoc", "arcp", "nsz"})
 def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray, iterations: int,
-                      max_move: float, converged: float) -> np.ndarray:
-    """xjunction_refine for all corners in one pass (see there): ``img`` (H, W) the raw image, ``pts`` (M, 2)
+                      max_move: float, converged: float) -> tuple[np.ndarray, np.ndarray]:
+    """xjunction_fit for all corners in one pass (see there): ``img`` (H, W) the raw image, ``pts`` (M, 2)
     the starts, ``angles`` (M, 2) the two lines' directions there (radians), ``radius`` (M,) px the disc.
-    A corner keeps its start when its disc is below _XJ_RADIUS_PX or leaves the image, the fit does not
-    converge in ``iterations`` or moves it further than ``max_move`` px."""
+    A corner keeps its start (fitted False) when its disc is below _XJ_RADIUS_PX or leaves the image, the
+    fit does not converge in ``iterations`` or moves it further than ``max_move`` px."""
     h, w = img.shape
     m = pts.shape[0]
     out = pts.copy()
+    fitted = np.zeros(m, dtype=np.bool_)
     r_max = int(math.ceil(radius.max() + 0.5)) if m else 0
     px = np.empty((2 * r_max + 1) ** 2)
     py = np.empty_like(px)
@@ -889,8 +890,9 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
         if done and math.isfinite(p[0]) and math.isfinite(p[1]) and math.hypot(p[0] - x, p[1] - y) <= max_move:
             out[i, 0] = p[0]
             out[i, 1] = p[1]
+            fitted[i] = True
             blur = p[4]
-    return out
+    return out, fitted
 
 
 # fast maths as the fit's (no NaN or inf assumed away), and numpy's division (no ZeroDivisionError branch, which
@@ -1033,15 +1035,22 @@ def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) 
 def xjunction_refine(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray,
                      max_move_px: float = 1.0) -> np.ndarray:
     """Corners (M, 2) moved to where a blurred X-junction fitted to the raw ``image`` (H, W) in a disc of
-    ``radius`` (M,) px (xjunction_radius) around each puts them.
+    ``radius`` (M,) px (xjunction_radius) around each puts them: xjunction_fit's corners."""
+    return xjunction_fit(image, pts, angles, radius, max_move_px)[0]
+
+
+def xjunction_fit(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray,
+                  max_move_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(corners (M, 2), fitted (M,) bool): where a blurred X-junction fitted to the raw ``image`` (H, W) in a
+    disc of ``radius`` (M,) px (xjunction_radius) around each corner puts it, and which corners it moved.
 
     Starts from ``pts`` (the saddle fit's corners) and the directions of the two lines through each,
     ``angles`` (M, 2) radians (grid_line_angles); a corner whose fit does not converge, moves more than
-    ``max_move_px`` or whose disc is below _XJ_RADIUS_PX or leaves the image keeps its start.
+    ``max_move_px`` or whose disc is below _XJ_RADIUS_PX or leaves the image keeps its start (not fitted).
     """
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
-        return pts.copy()
+        return pts.copy(), np.zeros(0, dtype=bool)
     radius = np.ascontiguousarray(np.asarray(radius, dtype=np.float64).reshape(-1))
     angles = np.ascontiguousarray(np.asarray(angles, dtype=np.float64).reshape(-1, 2))
     return _xjunction_kernel(image, pts, angles, radius, _XJ_ITERATIONS, float(max_move_px), _XJ_CONVERGED_PX)

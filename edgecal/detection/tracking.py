@@ -26,13 +26,21 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from edgecal.detection.board_corners import polish_corners
 from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
 from edgecal.detection.completion import verify_predictions
-from edgecal.detection.corner_covariance import corner_covariance, covariance_noise_sigma
+from edgecal.detection.corner_covariance import add_board_covariances, covariance_noise_sigma
 from edgecal.detection.detector import WINDOW_MARGIN_PX, detect
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import probe_radii
-from edgecal.detection.subpixel import nearest_spacing, on_board_rim, refine_rim, subpixel_window, window_spacing
+from edgecal.detection.subpixel import (
+    nearest_spacing,
+    on_board_rim,
+    refine_rim,
+    saddle_refine,
+    subpixel_window,
+    window_spacing,
+)
 from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.images import as_grey
 from edgecal.targets import Target
@@ -307,20 +315,23 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         if slipped_sides(corner, sides):
             continue
         # the rim corners once more with a window that leaves out the board's edge (cut outer squares)
-        xy, _window = refine_rim(smooth, xy, ids, sp, every=True)
+        xy, window = refine_rim(smooth, xy, ids, sp, every=True)
+        # then the refiner of the full search (the saddle fit, the X-junction fit on the raw crop): tracked
+        # corners as accurate as searched ones (cornerSubPix alone left the hard sequence's tracked pose ~3x
+        # less accurate than the searched one)
+        fitted = np.zeros(len(xy), dtype=bool)
+        if p.subpixel_refiner != "cornersubpix":
+            xy, fitted = polish_corners(crop, smooth, saddle_refine(smooth, xy, window), ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
-                               (board.cols, board.rows), complete=len(ids) == board.n_corners))
+                               (board.cols, board.rows), complete=len(ids) == board.n_corners,
+                               xjunction_fitted=fitted[order]))
         windows.append(sp[order])
     # The corners' covariances, all boards in one call, on the crop they were refined on; the noise from the
     # whole image: in a crop the board fills, its edges inflate the half-resolution estimate up to 2x.
-    if found:
-        cc = corner_covariance(crop, smooth, sigma, np.concatenate([d.corners for d in found]) - offset,
-                               np.concatenate(windows), covariance_noise_sigma(grey), refiner="cornersubpix")
-        bounds = np.cumsum([0] + [len(d.corners) for d in found])
-        for d, i, j in zip(found, bounds[:-1], bounds[1:]):
-            d.covariance, d.shared_px2, d.unusable = cc.covariance[i:j], cc.shared_px2[i:j], cc.unusable[i:j]
+    add_board_covariances(found, crop, smooth, sigma, covariance_noise_sigma(grey), p.subpixel_refiner, offset,
+                          windows)
     return TrackedBoards(found, frozenset(in_place))
 
 

@@ -29,6 +29,9 @@ class Detection:
              squares (CornerCovariances); zeros where it was not read, None when not computed.
     alternating_px2: (N,) float64, the part of each corner's covariance (px^2 per axis) that is its board's
              light shift in the checkerboard pattern of its corners (CornerCovariances); None when not computed.
+    xjunction_fitted: (N,) bool, the corners the X-junction fit placed (refiner "xjunction"; the others hold
+             the saddle fit's or cornerSubPix's position, and get that refiner's covariance); None: all of
+             them, for the refiner's covariance.
     """
 
     board: str
@@ -43,6 +46,7 @@ class Detection:
     shared_px2: np.ndarray | None = None
     light_gradient: np.ndarray | None = None
     alternating_px2: np.ndarray | None = None
+    xjunction_fitted: np.ndarray | None = None
 
     def usable(self) -> np.ndarray:
         """(N,) bool: corners with a positive-definite covariance (all when none was computed)."""

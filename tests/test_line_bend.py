@@ -1,0 +1,90 @@
+"""The X-junction fit's shift on a lens-bent grid (edgecal.detection.line_bend)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+
+import edgecal
+from edgecal.detection.line_bend import bend_shift, line_curvatures
+from edgecal.detection.subpixel import grid_line_angles, nearest_spacing, xjunction_disc_radius
+from edgecal.synth.handheld import handheld_rig, handheld_sequence
+from edgecal.synth.scenes import random_camera
+from edgecal.targets import planar_target
+
+
+def _grid(cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    ids = np.array([(c, r) for r in range(rows) for c in range(cols)], dtype=np.int64)
+    return ids.astype(np.float64), ids
+
+
+def test_a_perspective_grid_has_straight_lines() -> None:
+    # A homography keeps lines straight however unevenly it spaces their corners (the cubic in the index
+    # fits x and y with one rational function's best polynomial, so the fitted curve stays a line).
+    uv, ids = _grid(9, 6)
+    H = np.array([[30.0, 4.0, 100.0], [-3.0, 26.0, 80.0], [0.012, -0.018, 1.0]])
+    xy = cv2.perspectiveTransform(uv.reshape(-1, 1, 2), H).reshape(-1, 2)
+    k = line_curvatures(xy, ids)
+    assert np.all(np.isfinite(k))
+    assert np.abs(k).max() < 1e-9
+    assert np.abs(bend_shift(xy, ids, grid_line_angles(xy, ids), np.full(len(xy), 8.0))).max() < 1e-7
+
+
+def test_rows_on_circles_have_their_curvature_towards_the_centre() -> None:
+    # Rows on concentric arcs about (300, 900): curvature 1 / radius, pointing at the centre; columns radial
+    # (straight); a cubic in the index follows a 24 deg arc to ~1 %. The shift moves each corner towards the
+    # centre by kappa r^2 / 6 (the columns fix the rest).
+    cols, rows = 9, 5
+    centre = np.array([300.0, 900.0])
+    ids = np.array([(c, r) for r in range(rows) for c in range(cols)], dtype=np.int64)
+    radius = 600.0 + 30.0 * ids[:, 1]
+    phi = np.radians(-90.0 + 3.0 * (ids[:, 0] - 4))
+    xy = centre + radius[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    k = line_curvatures(xy, ids)
+    to_centre = (centre - xy) / np.linalg.norm(centre - xy, axis=1)[:, None]
+    np.testing.assert_allclose(np.linalg.norm(k[:, 0], axis=1), 1.0 / radius, rtol=1.5e-2)
+    np.testing.assert_allclose(np.sum(k[:, 0] * to_centre, axis=1), 1.0 / radius, rtol=1.5e-2)
+    assert np.abs(k[:, 1]).max() < 1e-7
+    disc = np.full(len(xy), 9.0)
+    shift = bend_shift(xy, ids, grid_line_angles(xy, ids), disc)
+    np.testing.assert_allclose(np.sum(shift * to_centre, axis=1), disc ** 2 / (6.0 * radius), rtol=2e-2)
+
+
+def test_a_line_of_two_corners_counts_as_straight() -> None:
+    uv, ids = _grid(2, 4)
+    xy = 40.0 * uv + np.array([0.0, 3.0]) * (uv[:, 1:] - 1.5) ** 2
+    k = line_curvatures(xy, ids)
+    assert np.all(np.isnan(k[:, 0])) and np.all(np.isfinite(k[:, 1]))
+    assert np.all(np.isfinite(bend_shift(xy, ids, grid_line_angles(xy, ids), np.full(len(xy), 6.0))))
+
+
+def test_the_fisheye_corners_lose_the_straight_line_bias() -> None:
+    # Rendered hand-held fisheye views (150-200 deg): the inner corners' error against the truth with the
+    # shift taken off (what detect reports) and with it put back (the X-junction fit alone). Measured over
+    # 8 sessions: 0.033 -> 0.019 px RMS.
+    errors, uncorrected = [], []
+    for seed in (0, 1, 2):
+        rig = handheld_rig([seed, 31], (640, 480), stereo=False)
+        rig = replace(rig, left=random_camera(np.random.default_rng([seed, 32]), (640, 480), distortion="fisheye"))
+        target = planar_target(rig.board.cols, rig.board.rows, rig.board.square_mm, name=rig.board.name)
+        for frame in handheld_sequence([seed, 31], rig, n_poses=3, hold_frames=1, move_frames=0,
+                                       photometric="clean"):
+            view = frame.left
+            if not view.truth.get("boards"):
+                continue
+            truth = {(int(c), int(r)): p for (c, r), p in zip(view.ids(0), view.corners(0))}
+            for det in edgecal.detect(view.image, target):
+                inner = ((det.ids > 0) & (det.ids < np.array(det.grid) - 1)).all(axis=1) & det.xjunction_fitted
+                ids, xy = det.ids[inner], det.corners[inner]
+                true = np.array([truth[(int(c), int(r))] for c, r in ids])
+                # (an inner corner's disc: xjunction_radius away from the rim)
+                shift = bend_shift(det.corners, det.ids, grid_line_angles(det.corners, det.ids),
+                                   xjunction_disc_radius(nearest_spacing(det.corners)))[inner]
+                errors.append(xy - true)
+                uncorrected.append(xy + shift - true)
+    e, u = np.concatenate(errors), np.concatenate(uncorrected)
+    assert len(e) > 100
+    rms, rms_before = float(np.sqrt(np.mean(e ** 2))), float(np.sqrt(np.mean(u ** 2)))
+    assert rms < 0.75 * rms_before, (rms, rms_before)
