@@ -10,7 +10,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from edgecal.detection.candidates import _local_maxima, _maxima_of_dilated, _sparse_local_maxima
+from edgecal.detection.candidates import (
+    _local_maxima,
+    _maxima_of_dilated,
+    _sparse_local_maxima,
+    gradients,
+    min_eigen_image,
+)
 from edgecal.detection.completion import _predict_from_dense, _ring_offsets, dense_labels
 from edgecal.detection.grouping import CROSS_RATIO_EQUAL_STEPS, cross_ratio_strikes
 from edgecal.detection.subpixel import SEARCH_CRITERIA, refine_corners, subpixel_window
@@ -62,6 +68,25 @@ def _strikes_reference(pts: np.ndarray, labels: np.ndarray, tolerance: float) ->
                     if not abs(cr - CROSS_RATIO_EQUAL_STEPS) / CROSS_RATIO_EQUAL_STEPS <= tolerance:
                         strikes[run] += 1
     return strikes
+
+
+def test_min_eigen_image_repeats_opencvs_box_sums_with_an_exact_root() -> None:
+    # the numba pass's box sums are cv2.boxFilter's to the bit; only the root is the correctly rounded one,
+    # where cv2.magnitude (IPP) is within 2 float32 ulp of it
+    rng = np.random.default_rng(5)
+    for shape in ((3, 3), (4, 7), (61, 97), (128, 160)):
+        img = cv2.GaussianBlur((255 * rng.random(shape)).astype(np.float32), (5, 5), 1.0)
+        gx, gy = gradients(img)
+        a = cv2.boxFilter(cv2.multiply(gx, gx), -1, (3, 3), normalize=False)
+        c = cv2.boxFilter(cv2.multiply(gy, gy), -1, (3, 3), normalize=False)
+        b = cv2.boxFilter(cv2.multiply(gx, gy), -1, (3, 3), normalize=False)
+        half = np.float32(0.5)
+        d = a * half - c * half
+        root = np.sqrt(d.astype(np.float64) ** 2 + b.astype(np.float64) ** 2).astype(np.float32)
+        lam = min_eigen_image(gx, gy, 3)
+        assert lam.dtype == np.float32 and np.array_equal(lam, (a * half + c * half) - root)
+        opencv = cv2.subtract(cv2.addWeighted(a, 0.5, c, 0.5, 0.0), cv2.magnitude(d, b))
+        assert np.abs(lam - opencv).max() <= 1e-5 * np.abs(opencv).max()
 
 
 def test_cross_ratio_strikes_match_the_reference() -> None:

@@ -41,15 +41,92 @@ def prepare_image(grey: np.ndarray, sigma: float = 0.8) -> tuple[np.ndarray, np.
 def min_eigen_image(gx: np.ndarray, gy: np.ndarray, block_size: int) -> np.ndarray:
     """Minimum eigenvalue of the box-summed structure tensor at every pixel (Shi-Tomasi response).
 
-    lambda_min = (a + c) / 2 - sqrt(((a - c) / 2)^2 + b^2) for the tensor [[a, b], [b, c]], all in OpenCV's
-    vectorised image arithmetic (several times faster here than a per-pixel loop).
+    lambda_min = (a + c) / 2 - sqrt(((a - c) / 2)^2 + b^2) for the tensor [[a, b], [b, c]]. The 3x3 window
+    (the detector's) is one numba pass over the rows (_min_eigen_3x3); other windows use OpenCV's image
+    arithmetic.
     """
+    if block_size == 3 and min(gx.shape) >= 3:
+        return _min_eigen_3x3(np.ascontiguousarray(gx, np.float32), np.ascontiguousarray(gy, np.float32))
     k = (block_size, block_size)
     a = cv2.boxFilter(cv2.multiply(gx, gx), -1, k, normalize=False)
     c = cv2.boxFilter(cv2.multiply(gy, gy), -1, k, normalize=False)
     b = cv2.boxFilter(cv2.multiply(gx, gy), -1, k, normalize=False)
     root = cv2.magnitude(cv2.addWeighted(a, 0.5, c, -0.5, 0.0), b)
     return cv2.subtract(cv2.addWeighted(a, 0.5, c, 0.5, 0.0), root)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _box_rows_3(gx_row: np.ndarray, gy_row: np.ndarray, prod: np.ndarray, ha: np.ndarray, hc: np.ndarray,
+                hb: np.ndarray) -> None:
+    """The three products of one gradient row and their 3-wide horizontal sums (float64) into ha, hc, hb, in
+    cv2.boxFilter's order: ((left + centre) + right), the border mirrored without repeating the edge pixel.
+    prod: (3, w + 2) float32 scratch, the products with their mirrored ends (a loop without branches)."""
+    w = gx_row.shape[0]
+    for x in range(w):
+        prod[0, x + 1] = gx_row[x] * gx_row[x]
+        prod[1, x + 1] = gy_row[x] * gy_row[x]
+        prod[2, x + 1] = gx_row[x] * gy_row[x]
+    for q in range(3):
+        prod[q, 0] = prod[q, 2]
+        prod[q, w + 1] = prod[q, w - 1]
+    pa = prod[0]
+    pc = prod[1]
+    pb = prod[2]
+    for x in range(w):
+        ha[x] = (np.float64(pa[x]) + np.float64(pa[x + 1])) + np.float64(pa[x + 2])
+        hc[x] = (np.float64(pc[x]) + np.float64(pc[x + 1])) + np.float64(pc[x + 2])
+        hb[x] = (np.float64(pb[x]) + np.float64(pb[x + 1])) + np.float64(pb[x + 2])
+
+
+@njit(cache=True, nogil=True)
+def _min_eigen_3x3(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
+    """min_eigen_image for the 3x3 window, row by row (gx, gy float32, at least 3x3).
+
+    The products, the box sums and the eigenvalue of one row are made while its rows are in cache, where
+    OpenCV's eleven whole-image operations each read and write the image (~8 ms at 1280x800, this ~2 ms).
+    The box sums repeat cv2.boxFilter's arithmetic exactly (float64 horizontal sums, a float64 running
+    vertical sum, rounded to float32), and so do the (a +- c) / 2; the root is the correctly rounded
+    sqrt(d^2 + b^2), where cv2.magnitude's (IPP's) is within 2 float32 ulp of it.
+    """
+    h, w = gx.shape
+    lam = np.empty((h, w), np.float32)
+    prod = np.empty((3, w + 2), np.float32)
+    # horizontal sums of the last three rows (ring indexed by row + 1 modulo 3) and the running vertical sums
+    ha = np.empty((3, w))
+    hc = np.empty((3, w))
+    hb = np.empty((3, w))
+    sa = np.zeros(w)
+    sc = np.zeros(w)
+    sb = np.zeros(w)
+    half = np.float32(0.5)
+    for k in range(-1, h + 1):
+        src = k if k >= 0 else -k  # mirrored rows -1 -> 1, h -> h - 2
+        if src >= h:
+            src = 2 * h - 2 - src
+        slot = (k + 1) % 3
+        _box_rows_3(gx[src], gy[src], prod, ha[slot], hc[slot], hb[slot])
+        if k < 1:  # the running sum starts with the rows above the first output row
+            for x in range(w):
+                sa[x] += ha[slot, x]
+                sc[x] += hc[slot, x]
+                sb[x] += hb[slot, x]
+            continue
+        old = (k - 1) % 3  # row k - 2, leaving the window
+        out = lam[k - 1]
+        for x in range(w):
+            a0 = sa[x] + ha[slot, x]
+            c0 = sc[x] + hc[slot, x]
+            b0 = sb[x] + hb[slot, x]
+            sa[x] = a0 - ha[old, x]
+            sc[x] = c0 - hc[old, x]
+            sb[x] = b0 - hb[old, x]
+            a = np.float32(a0)
+            c = np.float32(c0)
+            b = np.float32(b0)
+            d = a * half - c * half
+            root = np.float32(math.sqrt(np.float64(d) * np.float64(d) + np.float64(b) * np.float64(b)))
+            out[x] = (a * half + c * half) - root
+    return lam
 
 
 # Share of pixels above the candidate threshold up to which each one's 5x5 neighbourhood is looked at in
