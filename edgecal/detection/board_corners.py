@@ -100,11 +100,22 @@ def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p
         if not slid.any():
             break
         again = final_corners(smooth, pred[slid], ids[sel][slid], p, spacing[sel][slid])
-        better = np.linalg.norm(again - pred[slid], axis=1) < off[slid]
+        better = (np.linalg.norm(again - pred[slid], axis=1) < off[slid]) \
+            & _settled(smooth, again, spacing[sel][slid])
         if not better.any():
             break
         out[sel[slid][better]] = again[better]
     return out
+
+
+def _settled(smooth: np.ndarray, xy: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """(M,) bool: the corners ``xy`` (M, 2) that cornerSubPix, free to go anywhere, leaves within half the
+    slide threshold: a corner. Where the lines' prediction misses the corner by more than half a window
+    (a fisheye's rim: a board's outer corner 10 px off it on bench/calibrate's renders), the refinement
+    from there runs off, keeps its start on the square's edge, and that start agrees with the prediction
+    perfectly; from an edge point cornerSubPix runs off again."""
+    moved = np.linalg.norm(refine_corners(smooth, xy, spacing, max_move_px=np.inf) - xy, axis=1)
+    return moved < 0.5 * np.maximum(SLID_FRACTION * spacing, 1.5)
 
 
 @njit(cache=True, nogil=True)

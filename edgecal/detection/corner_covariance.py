@@ -33,7 +33,9 @@ average for a consistent 2-D covariance).
 
 A covariance that is not positive definite or not finite (a flat or saturated window, a corner at the
 image border, a line instead of a corner) marks that corner unusable, with the reason; so does a saddle
-fit that would put the corner more than a pixel from where cornerSubPix put it (not one clean corner).
+fit that would put the corner more than a pixel from where cornerSubPix put it (not one clean corner), and,
+for the saddle and X-junction refiners, a corner neither fit sees (cornerSubPix's position alone is often
+on an edge there).
 
 Pure functions: the smoothed image and the corners in, covariances out; one numba call per frame over all
 corners.
@@ -71,6 +73,7 @@ REASON_BORDER = "refinement window leaves the image"
 REASON_FLAT = "no gradient in the refinement window (flat or saturated)"
 REASON_DEGENERATE = "covariance not positive definite (a line or an edge, not a corner)"
 REASON_DISAGREE = "saddle fit and cornerSubPix disagree by more than 1 px (not one clean corner)"
+REASON_NO_FIT = "neither the saddle fit nor the X-junction fit sees a corner there (an edge or a blur)"
 
 
 # The saddle fit's model error (px, 1 sigma per axis), measured on noise-free edgecal.synth renders (72
@@ -688,12 +691,13 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     noise2 = (covariance_noise_sigma(grey) if noise_sigma is None else noise_sigma) ** 2
     a = st[:, W_AXX] * st[:, W_AYY] - st[:, W_AXY] ** 2
     tr = st[:, W_AXX] + st[:, W_AYY]
-    ok = (st[:, W_INSIDE] > 0) & (tr > 0) & (a > tr * tr / MAX_CONDITION)
+    inside_window = st[:, W_INSIDE] > 0
+    ok = inside_window & (tr > 0) & (a > tr * tr / MAX_CONDITION)
     cov = _cornersubpix_covariance(st, half, noise2, np.where(ok, a, 1.0))
     shared_fraction = np.full(n, SHARED_FRACTION["cornersubpix"])
     alternating = np.zeros(n)
     if refiner in ("saddle", "xjunction"):
-        fitted = (sd[:, S_OK] > 0) & (st[:, W_INSIDE] > 0)
+        fitted = (sd[:, S_OK] > 0) & inside_window
         if boards is not None:
             sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
         read = fitted & (np.abs(sd[:, S_LEVEL]) > 1.0)
@@ -720,15 +724,22 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         cov[read] += 0.5 * shift2[:, None, None] * np.eye(2)
         ok |= fitted
         disagree = fitted & (np.hypot(sd[:, S_STEPX], sd[:, S_STEPY]) > MAX_SADDLE_STEP_PX)
+        # only cornerSubPix's position is left, and where the fits see no corner it is often on an edge: a
+        # fisheye board's outer corner 7.7 px off on bench/calibrate's renders, sigma 0.8 px (the one such
+        # corner of 7244); on ocamcalib_urban_fisheye1 6 of 717 corners, sigma 1.4-21 px
+        unfitted = inside_window & ~fitted
+        if refiner == "xjunction" and xjunction_fitted is not None:
+            unfitted &= ~np.asarray(xjunction_fitted, bool).reshape(n)
     else:
         disagree = np.zeros(n, dtype=bool)
+        unfitted = np.zeros(n, dtype=bool)
         light = np.zeros((n, 2))
     cov = 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
     ev_min = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) - np.hypot(0.5 * (cov[:, 0, 0] - cov[:, 1, 1]), cov[:, 0, 1])
     finite = np.isfinite(cov).all(axis=(1, 2))
-    inside = st[:, W_INSIDE] > 0
-    reasons = np.select([~inside, tr <= 0, ~(ok & finite & (ev_min > 0)), disagree],
-                        [REASON_BORDER, REASON_FLAT, REASON_DEGENERATE, REASON_DISAGREE], default="")
+    reasons = np.select([~inside_window, tr <= 0, ~(ok & finite & (ev_min > 0)), disagree, unfitted],
+                        [REASON_BORDER, REASON_FLAT, REASON_DEGENERATE, REASON_DISAGREE, REASON_NO_FIT],
+                        default="")
     cov[reasons != ""] = np.nan
     shared = shared_fraction ** 2 * (0.5 * (cov[:, 0, 0] + cov[:, 1, 1]) - alternating)
     light[reasons != ""] = 0.0
