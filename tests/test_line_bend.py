@@ -60,6 +60,21 @@ def test_a_line_of_two_corners_counts_as_straight() -> None:
     assert np.all(np.isfinite(bend_shift(xy, ids, grid_line_angles(xy, ids), np.full(len(xy), 6.0))))
 
 
+def test_a_partial_board_with_a_line_of_one_corner() -> None:
+    # Tracking keeps a board from half its corners: a row may hold only its last corner, or a gap. Such a
+    # row counts as straight (bench/live.py's hard sequence: an IndexError in 8 of 300 frames' tracking).
+    uv, ids = _grid(5, 4)
+    xy = 40.0 * uv + np.array([0.0, 2.0]) * (uv[:, :1] - 2.0) ** 2
+    keep = ~((ids[:, 1] == 0) & (ids[:, 0] < 4)) & ~((ids[:, 1] == 2) & (ids[:, 0] == 1))
+    k = line_curvatures(xy[keep], ids[keep])
+    row, col = ids[keep][:, 1], ids[keep][:, 0]
+    assert np.all(np.isnan(k[row == 0, 0])) and np.all(np.isfinite(k[row > 0, 0]))
+    # the rows are one parabola: the gap changes nothing
+    np.testing.assert_allclose(k[row == 2, 0], k[(row == 1) & (col != 1), 0], rtol=1e-6, atol=1e-12)
+    shift = bend_shift(xy[keep], ids[keep], grid_line_angles(xy[keep], ids[keep]), np.full(keep.sum(), 6.0))
+    assert np.all(np.isfinite(shift))
+
+
 def test_the_fisheye_corners_lose_the_straight_line_bias() -> None:
     # Rendered hand-held fisheye views (150-200 deg): the inner corners' error against the truth with the
     # shift taken off (what detect reports) and with it put back (the X-junction fit alone). Measured over

@@ -60,6 +60,7 @@ def line_curvatures(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
         first = np.argmax(present, axis=1)
         last = n_along - 1 - np.argmax(present[:, ::-1], axis=1)
         at = np.clip(np.arange(n_along)[None, :], (first + 1)[:, None], np.maximum(last - 1, first + 1)[:, None])
+        at = np.minimum(at, n_along - 1)                    # a line of one corner, the last (not fitted)
         t_at = j[at]
         for degree, use in ((3, count >= _CUBIC_MIN_CORNERS), (2, (count >= 3) & (count < _CUBIC_MIN_CORNERS))):
             if not use.any():
