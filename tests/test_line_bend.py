@@ -75,6 +75,19 @@ def test_a_partial_board_with_a_line_of_one_corner() -> None:
     assert np.all(np.isfinite(shift))
 
 
+def test_any_subset_of_a_grid_gives_finite_shifts() -> None:
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        cols, rows = rng.integers(1, 10, size=2)
+        uv, ids = _grid(int(cols), int(rows))
+        xy = 30.0 * uv + rng.normal(0.0, 0.5, uv.shape)
+        keep = rng.random(len(ids)) < rng.uniform(0.2, 1.0)
+        if not keep.any():
+            continue
+        shift = bend_shift(xy[keep], ids[keep], rng.uniform(-np.pi, np.pi, (keep.sum(), 2)), np.full(keep.sum(), 6.0))
+        assert shift.shape == (keep.sum(), 2) and np.all(np.isfinite(shift))
+
+
 def test_the_fisheye_corners_lose_the_straight_line_bias() -> None:
     # Rendered hand-held fisheye views (150-200 deg): the inner corners' error against the truth with the
     # shift taken off (what detect reports) and with it put back (the X-junction fit alone). Measured over

@@ -103,6 +103,11 @@ PIXEL_LOCK_LENGTH_PX = 1.3
 # blur) and 3.3 (hard) with 0.42. 0.50 (1.2x) is taken: a gain that grows with the blur would fit both better.
 XJUNCTION_NOISE_SHARE = 0.50
 XJUNCTION_LOCK_SHARE = 0.5
+# The X-junction fit's own floor: its corners' errors beyond noise and pixel locking, fitted (with the
+# locking's amplitude and length) over bench/corner_noise.py's clean and foreshortened renders (40 views
+# each): 0.000 and 0.0025-0.0028 px per axis. The saddle fit's 0.002 made the clean renders' covariances
+# too wide (normalised error 1.44, median 0.73); 0.001 is taken.
+XJUNCTION_FLOOR_PX = 0.001
 # A light field L moves the X-junction fit's corner by about XJUNCTION_LIGHT_PX x r |grad log L| per axis
 # (r its disc's radius: the light's change across the disc, which its model of constant levels cannot
 # follow). The shift follows the corner's polarity: all corners of a board move by one vector b, times +1 or
@@ -806,13 +811,13 @@ def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
 def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray) -> np.ndarray:
     """Corners the X-junction fit polished (subpixel.xjunction_refine; N, 2, 2) from the saddle fit's
     statistics sd (N, N_SADDLE) at them: its noise term and pixel locking scaled by what that fit measured
-    against it (XJUNCTION_NOISE_SHARE, XJUNCTION_LOCK_SHARE), the floor, and the light field's shift
-    ``light_px`` (N,) px per axis (XJUNCTION_LIGHT_PX). Not the saddle fit's light term H^-1 m nor its
+    against it (XJUNCTION_NOISE_SHARE, XJUNCTION_LOCK_SHARE), its floor (XJUNCTION_FLOOR_PX), and the light
+    field's shift ``light_px`` (N,) px per axis (XJUNCTION_LIGHT_PX). Not the saddle fit's light term H^-1 m nor its
     remaining step (the distance the polish moved the corner, not an error). Pixel locking stays isotropic:
     put across the locked edge instead, the strongly foreshortened renders' covariances were 1.4x too
     elongated (tests/test_corner_covariance.py), though the robot sequences' clean corners had 0.79 of their
     sigma along the image's y axis with it isotropic and 0.94 across the edges."""
-    model2 = (SADDLE_FLOOR_PX ** 2 + (XJUNCTION_LOCK_SHARE * PIXEL_LOCK_PX) ** 2 * _locking(sd)
+    model2 = (XJUNCTION_FLOOR_PX ** 2 + (XJUNCTION_LOCK_SHARE * PIXEL_LOCK_PX) ** 2 * _locking(sd)
               + np.asarray(light_px, dtype=np.float64) ** 2)
     return XJUNCTION_NOISE_SHARE * saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
 
