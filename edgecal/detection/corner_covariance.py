@@ -108,6 +108,12 @@ XJUNCTION_LOCK_SHARE = 0.5
 # each): 0.000 and 0.0025-0.0028 px per axis. The saddle fit's 0.002 made the clean renders' covariances
 # too wide (normalised error 1.44, median 0.73); 0.001 is taken.
 XJUNCTION_FLOOR_PX = 0.001
+# The lens-bend correction (line_bend) is a first-order model read off the board's own noisy corners: its
+# error grows with the shift it takes off. On bench/calibrate.py's rendered fisheye hand-held sessions (24
+# seeds, ~7,400 X-junction corners, clean and normal photometry) the normalised error was 52 and 9.0 (180
+# and 25 on the quarter of the corners with the largest shifts, 0.05-0.25 px); with BEND_ERROR_SHARE x the
+# shift's length added per axis, 0.2: 3.3 and 2.9, 0.3: 2.1 and 2.1 (that quarter 1.9 and 1.9).
+BEND_ERROR_SHARE = 0.3
 # A light field L moves the X-junction fit's corner by about XJUNCTION_LIGHT_PX x r |grad log L| per axis
 # (r its disc's radius: the light's change across the disc, which its model of constant levels cannot
 # follow). The shift follows the corner's polarity: all corners of a board move by one vector b, times +1 or
@@ -655,7 +661,8 @@ class CornerCovariances(NamedTuple):
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
                       spacing: np.ndarray | None = None, noise_sigma: float | None = None, *, refiner: str,
                       steps: np.ndarray | None = None, boards: np.ndarray | None = None,
-                      xjunction_fitted: np.ndarray | None = None) -> CornerCovariances:
+                      xjunction_fitted: np.ndarray | None = None, bend_px: np.ndarray | None = None
+                      ) -> CornerCovariances:
     """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, the part its board's corners share,
     and why a corner is unusable (CornerCovariances).
 
@@ -669,7 +676,9 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     (grid_steps), for the saddle fit's model error (default: read off the fit); boards: (N,) int, which
     board each corner is on: the light field, smooth over a board, is averaged over its corners (default:
     each corner alone). xjunction_fitted: (N,) bool, refiner "xjunction": the corners its fit placed
-    (Detection.xjunction_fitted; default all); the others get the saddle fit's covariance.
+    (Detection.xjunction_fitted; default all); the others get the saddle fit's covariance. bend_px: (N,)
+    the lens-bend correction's length on each (Detection.bend_px; default none), BEND_ERROR_SHARE of it
+    added per axis.
     """
     if refiner not in REFINERS:
         raise ValueError(f"unknown refiner {refiner!r} ({', '.join(REFINERS)})")
@@ -716,7 +725,8 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
             light_px = XJUNCTION_LIGHT_PX * xjunction_disc_radius(spacing) * np.sqrt(g2)
             placed = fitted if xjunction_fitted is None else fitted & np.asarray(xjunction_fitted, bool).reshape(n)
             alternating[placed] = light_px[placed] ** 2
-            cov[placed] = _xjunction_covariance(sd[placed], noise2, light_px[placed])
+            bend = np.zeros(n) if bend_px is None else np.asarray(bend_px, dtype=np.float64).reshape(n)
+            cov[placed] = _xjunction_covariance(sd[placed], noise2, light_px[placed], bend[placed])
             held = fitted & ~placed            # where the X-junction fit did not run: the saddle fit's corner
             cov[held] = _saddle_covariance(sd[held], noise2)
         else:
@@ -808,17 +818,19 @@ def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
     return saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
 
 
-def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray) -> np.ndarray:
+def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray, bend_px: np.ndarray) -> np.ndarray:
     """Corners the X-junction fit polished (subpixel.xjunction_refine; N, 2, 2) from the saddle fit's
     statistics sd (N, N_SADDLE) at them: its noise term and pixel locking scaled by what that fit measured
     against it (XJUNCTION_NOISE_SHARE, XJUNCTION_LOCK_SHARE), its floor (XJUNCTION_FLOOR_PX), and the light
-    field's shift ``light_px`` (N,) px per axis (XJUNCTION_LIGHT_PX). Not the saddle fit's light term H^-1 m nor its
-    remaining step (the distance the polish moved the corner, not an error). Pixel locking stays isotropic:
-    put across the locked edge instead, the strongly foreshortened renders' covariances were 1.4x too
+    field's shift ``light_px`` (N,) px per axis (XJUNCTION_LIGHT_PX) and BEND_ERROR_SHARE of the lens-bend
+    correction ``bend_px`` (N,) px. Not the saddle fit's light term H^-1 m nor its remaining step (the
+    distance the polish moved the corner, not an error). Pixel locking stays isotropic: put across the
+    locked edge instead, the strongly foreshortened renders' covariances were 1.4x too
     elongated (tests/test_corner_covariance.py), though the robot sequences' clean corners had 0.79 of their
     sigma along the image's y axis with it isotropic and 0.94 across the edges."""
     model2 = (XJUNCTION_FLOOR_PX ** 2 + (XJUNCTION_LOCK_SHARE * PIXEL_LOCK_PX) ** 2 * _locking(sd)
-              + np.asarray(light_px, dtype=np.float64) ** 2)
+              + np.asarray(light_px, dtype=np.float64) ** 2
+              + (BEND_ERROR_SHARE * np.asarray(bend_px, np.float64)) ** 2)
     return XJUNCTION_NOISE_SHARE * saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
 
 
@@ -905,8 +917,9 @@ def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth:
     steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
     boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
     placed = [np.ones(len(d.corners), bool) if d.xjunction_fitted is None else d.xjunction_fitted for d in detections]
+    bend = [np.zeros(len(d.corners)) if d.bend_px is None else d.bend_px for d in detections]
     cc = corner_covariance(grey, smooth, smoothing_sigma, xy, windows, noise_sigma, refiner=refiner, steps=steps,
-                           boards=boards, xjunction_fitted=np.concatenate(placed))
+                           boards=boards, xjunction_fitted=np.concatenate(placed), bend_px=np.concatenate(bend))
     start = 0
     for d in detections:
         end = start + len(d.corners)

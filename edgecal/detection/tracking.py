@@ -319,14 +319,14 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         # then the refiner of the full search (the saddle fit, the X-junction fit on the raw crop): tracked
         # corners as accurate as searched ones (cornerSubPix alone left the hard sequence's tracked pose ~3x
         # less accurate than the searched one)
-        fitted = np.zeros(len(xy), dtype=bool)
+        fitted, bend = np.zeros(len(xy), dtype=bool), np.zeros(len(xy))
         if p.subpixel_refiner != "cornersubpix":
-            xy, fitted = polish_corners(crop, smooth, saddle_refine(smooth, xy, window), ids, p)
+            xy, fitted, bend = polish_corners(crop, smooth, saddle_refine(smooth, xy, window), ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
                                (board.cols, board.rows), complete=len(ids) == board.n_corners,
-                               xjunction_fitted=fitted[order]))
+                               xjunction_fitted=fitted[order], bend_px=bend[order]))
         windows.append(sp[order])
     # The corners' covariances, all boards in one call, on the crop they were refined on; the noise from the
     # whole image: in a crop the board fills, its edges inflate the half-resolution estimate up to 2x.

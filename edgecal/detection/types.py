@@ -32,6 +32,8 @@ class Detection:
     xjunction_fitted: (N,) bool, the corners the X-junction fit placed (refiner "xjunction"; the others hold
              the saddle fit's or cornerSubPix's position, and get that refiner's covariance); None: all of
              them, for the refiner's covariance.
+    bend_px: (N,) float64, the length (px) of the lens-bend correction taken off each X-junction corner
+             (edgecal.detection.line_bend; 0 where none was), which its covariance counts; None: none.
     """
 
     board: str
@@ -47,6 +49,7 @@ class Detection:
     light_gradient: np.ndarray | None = None
     alternating_px2: np.ndarray | None = None
     xjunction_fitted: np.ndarray | None = None
+    bend_px: np.ndarray | None = None
 
     def usable(self) -> np.ndarray:
         """(N,) bool: corners with a positive-definite covariance (all when none was computed)."""
