@@ -20,6 +20,64 @@ def _grid(cols: int, rows: int) -> tuple[np.ndarray, np.ndarray]:
     return ids.astype(np.float64), ids
 
 
+def _line_curvatures_reference(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """line_curvatures in plain numpy (batched polynomial fits per line, as first written)."""
+    out = np.full((len(xy), 2, 2), np.nan)
+    if len(xy) < 3:
+        return out
+    lo = ids.min(axis=0)
+    cols, rows = (ids.max(axis=0) - lo + 1).tolist()
+    for axis, (n_lines, n_along) in enumerate(((rows, cols), (cols, rows))):
+        if n_along < 3:
+            continue
+        line, along = ids[:, 1 - axis] - lo[1 - axis], ids[:, axis] - lo[axis]
+        points = np.full((n_lines, n_along, 2), np.nan)
+        points[line, along] = xy
+        present = np.isfinite(points[:, :, 0])
+        count = present.sum(axis=1)
+        j = np.arange(n_along, dtype=np.float64) - 0.5 * (n_along - 1)
+        first = np.argmax(present, axis=1)
+        last = n_along - 1 - np.argmax(present[:, ::-1], axis=1)
+        at = np.clip(np.arange(n_along)[None, :], (first + 1)[:, None], np.maximum(last - 1, first + 1)[:, None])
+        t = j[np.minimum(at, n_along - 1)]
+        d1 = np.full((n_lines, n_along, 2), np.nan)
+        d2 = np.full((n_lines, n_along, 2), np.nan)
+        for degree, use in ((3, count >= 5), (2, (count >= 3) & (count < 5))):
+            if not use.any():
+                continue
+            powers = np.arange(degree + 1)
+            vander = j[:, None] ** powers[None, :]
+            w = present[use].astype(np.float64)
+            normal = np.einsum("ln,na,nb->lab", w, vander, vander)
+            rhs = np.einsum("ln,na,lnc->lac", w, vander, np.where(present[use][..., None], points[use], 0.0))
+            coef = np.linalg.solve(normal, rhs)
+            tt = t[use][..., None]
+            p1 = np.where(powers >= 1, powers, 0) * tt ** np.maximum(powers - 1, 0)
+            p2 = np.where(powers >= 2, powers * (powers - 1), 0) * tt ** np.maximum(powers - 2, 0)
+            d1[use], d2[use] = np.einsum("lnp,lpc->lnc", p1, coef), np.einsum("lnp,lpc->lnc", p2, coef)
+        speed2 = np.sum(d1 * d1, axis=2)
+        tangent = d1 / np.sqrt(speed2)[..., None]
+        curvature = (d2 - np.sum(d2 * tangent, axis=2)[..., None] * tangent) / speed2[..., None]
+        out[:, axis] = curvature[line, along]
+    return out
+
+
+def test_the_kernel_matches_the_plain_reference() -> None:
+    rng = np.random.default_rng(9)
+    for _ in range(200):
+        cols, rows = (int(v) for v in rng.integers(1, 11, size=2))
+        uv, ids = _grid(cols, rows)
+        # a barrel-bent grid with noise, some corners missing
+        xy = 30.0 * uv - 0.004 * (30.0 * uv - 120.0) * np.sum((uv - 4.0) ** 2, axis=1)[:, None]
+        xy += rng.normal(0.0, 0.05, xy.shape)
+        keep = rng.random(len(ids)) < rng.uniform(0.3, 1.0)
+        if not keep.any():
+            continue
+        got, want = line_curvatures(xy[keep], ids[keep]), _line_curvatures_reference(xy[keep], ids[keep])
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+        np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-12)
+
+
 def test_a_perspective_grid_has_straight_lines() -> None:
     # A homography keeps lines straight however unevenly it spaces their corners (the cubic in the index
     # fits x and y with one rational function's best polynomial, so the fitted curve stays a line).

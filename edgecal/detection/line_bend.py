@@ -18,12 +18,18 @@ straight), and the curvature vector taken off its derivatives. At a line's first
 curvature is read at the next corner inwards: a cubic's second derivative extrapolated to its ends is
 mostly noise (rim corners then got worse, 0.040 -> 0.61 px RMS; read inwards 0.040 -> 0.026).
 
-Pure functions: corners, ids and disc radii in, shifts out; a few array operations per board.
+Pure functions: corners, ids and disc radii in, shifts out; one numba pass over a board's lines (the plain
+reference is in tests/test_line_bend.py).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
+
+from edgecal.detection.subpixel import solve_spd
 
 # Share of kappa r^2 by which the fitted line sits off a bent edge at the corner: the mean of s^2 / 2 over
 # s uniform in [-r, r], in units of r^2.
@@ -51,45 +57,67 @@ def line_curvatures(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
         along = ids[:, axis] - lo[axis]                     # the index along it
         points = np.full((n_lines, n_along, 2), np.nan)
         points[line, along] = xy
-        present = np.isfinite(points[:, :, 0])
-        count = present.sum(axis=1)
-        j = np.arange(n_along, dtype=np.float64) - 0.5 * (n_along - 1)
-        d1 = np.full((n_lines, n_along, 2), np.nan)
-        d2 = np.full((n_lines, n_along, 2), np.nan)
-        # where each corner's derivatives are read: its own index, the ends' one index inwards
-        first = np.argmax(present, axis=1)
-        last = n_along - 1 - np.argmax(present[:, ::-1], axis=1)
-        at = np.clip(np.arange(n_along)[None, :], (first + 1)[:, None], np.maximum(last - 1, first + 1)[:, None])
-        at = np.minimum(at, n_along - 1)                    # a line of one corner, the last (not fitted)
-        t_at = j[at]
-        for degree, use in ((3, count >= _CUBIC_MIN_CORNERS), (2, (count >= 3) & (count < _CUBIC_MIN_CORNERS))):
-            if not use.any():
-                continue
-            coef = _weighted_polyfit(j, points[use], present[use], degree)        # (L, degree + 1, 2)
-            d1[use], d2[use] = _derivatives(coef, t_at[use])
-        speed2 = np.sum(d1 * d1, axis=2)
-        tangent = d1 / np.sqrt(speed2)[..., None]
-        curvature = (d2 - np.sum(d2 * tangent, axis=2)[..., None] * tangent) / speed2[..., None]
-        curvatures[:, axis] = curvature[line, along]
+        curvatures[:, axis] = _line_curvature_kernel(points, _CUBIC_MIN_CORNERS)[line, along]
     return curvatures
 
 
-def _weighted_polyfit(j: np.ndarray, points: np.ndarray, present: np.ndarray, degree: int) -> np.ndarray:
-    """Least-squares polynomials (L, degree + 1, 2; power 0 first) in ``j`` (n,) through the present points
-    (L, n, 2; ``present`` (L, n) bool) of L lines, x and y alike."""
-    vander = j[:, None] ** np.arange(degree + 1)[None, :]              # (n, degree + 1)
-    w = present.astype(np.float64)
-    normal = np.einsum("ln,na,nb->lab", w, vander, vander)
-    rhs = np.einsum("ln,na,lnc->lac", w, vander, np.where(present[..., None], points, 0.0))
-    return np.linalg.solve(normal, rhs)
-
-
-def _derivatives(coef: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """First and second derivatives (L, n, 2) of the polynomials ``coef`` (L, degree + 1, 2) at ``t`` (L, n)."""
-    powers = np.arange(coef.shape[1])
-    p1 = np.where(powers >= 1, powers, 0)[None, None, :] * t[..., None] ** np.maximum(powers - 1, 0)
-    p2 = np.where(powers >= 2, powers * (powers - 1), 0)[None, None, :] * t[..., None] ** np.maximum(powers - 2, 0)
-    return np.einsum("lnp,lpc->lnc", p1, coef), np.einsum("lnp,lpc->lnc", p2, coef)
+@njit(cache=True, nogil=True)
+def _line_curvature_kernel(points: np.ndarray, cubic_min: int) -> np.ndarray:
+    """(L, n, 2): the curvature vector at each index of L lines of n points (L, n, 2; NaN where a corner is
+    missing), from a least-squares polynomial in the centred index (a cubic from ``cubic_min`` corners, a
+    parabola from three), read one index inwards at a line's first and last corner; NaN on a line of
+    fewer than three corners. One pass over a board's lines (numpy's batched fits cost ~0.25 ms a board)."""
+    n_lines, n_along = points.shape[0], points.shape[1]
+    out = np.full((n_lines, n_along, 2), np.nan)
+    half = 0.5 * (n_along - 1)
+    normal = np.empty((4, 4))
+    rhs = np.empty((2, 4))
+    coef = np.empty((2, 4))
+    for li in range(n_lines):
+        count = 0
+        first = -1
+        last = -1
+        for k in range(n_along):
+            if math.isfinite(points[li, k, 0]):
+                count += 1
+                if first < 0:
+                    first = k
+                last = k
+        if count < 3:
+            continue
+        m = 4 if count >= cubic_min else 3
+        normal[:] = 0.0
+        rhs[:] = 0.0
+        for k in range(n_along):
+            if not math.isfinite(points[li, k, 0]):
+                continue
+            t = k - half
+            for a in range(m):
+                ta = t ** a
+                rhs[0, a] += ta * points[li, k, 0]
+                rhs[1, a] += ta * points[li, k, 1]
+                for b in range(m):
+                    normal[a, b] += ta * t ** b
+        for c in range(2):
+            coef[c, :m] = solve_spd(normal[:m, :m].copy(), rhs[c, :m].copy())
+        for k in range(n_along):
+            at = min(max(k, first + 1), max(last - 1, first + 1), n_along - 1)
+            t = at - half
+            d1x = d1y = d2x = d2y = 0.0
+            for a in range(1, m):
+                d1x += a * coef[0, a] * t ** (a - 1)
+                d1y += a * coef[1, a] * t ** (a - 1)
+            for a in range(2, m):
+                d2x += a * (a - 1) * coef[0, a] * t ** (a - 2)
+                d2y += a * (a - 1) * coef[1, a] * t ** (a - 2)
+            speed2 = d1x * d1x + d1y * d1y
+            if not speed2 > 0.0:
+                continue
+            # the second derivative's part across the tangent, over the speed squared
+            along = (d2x * d1x + d2y * d1y) / speed2
+            out[li, k, 0] = (d2x - along * d1x) / speed2
+            out[li, k, 1] = (d2y - along * d1y) / speed2
+    return out
 
 
 def bend_shift(xy: np.ndarray, ids: np.ndarray, angles: np.ndarray, radius: np.ndarray) -> np.ndarray:

@@ -880,7 +880,7 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
                     jtj[a, b] = jtj[b, a]
                 jtj[a, a] *= 1.0 + damping
                 jtj[a, a] += 1e-12
-            step = _solve_spd(jtj, jtr)
+            step = solve_spd(jtj, jtr)
             p -= step
             p[4] = max(p[4], _XJ_MIN_BLUR_PX)
             damping = max(0.3 * damping, 1e-6)
@@ -954,9 +954,9 @@ def _weighted_sums(jac: np.ndarray, wjac: np.ndarray, res: np.ndarray, w: np.nda
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def solve_spd(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """x with a x = b for a symmetric positive-definite (n, n) ``a`` (Cholesky, in place on ``a``): the fit's
-    damped normal equations, 7x7, where LAPACK's call costs more than the solve."""
+    damped normal equations, 7x7, where LAPACK's call costs more than the solve (and line_bend's 3x3 / 4x4)."""
     n = a.shape[0]
     for j in range(n):
         d = a[j, j]
