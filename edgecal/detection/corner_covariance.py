@@ -10,7 +10,7 @@ Noise moves the linear terms only to first order, so Sigma_noise = H^-1 N H^-1 s
 resampling, the fit's own smoothing and its weights. H holds contrast (it scales with it), blur (a flatter
 saddle) and foreshortening (edges close to parallel: one small eigenvalue) by itself.
 
-cornerSubPix (tracking's verification, the "cornersubpix" refiner) solves the gradient-orthogonality
+cornerSubPix (the "cornersubpix" refiner, and tracking's first pass) solves the gradient-orthogonality
 equations sum_i w_i g_i g_i^T (q - p_i) = 0 over its window (w_i = exp(-|p_i - q|^2 / hw^2)). Perturbing
 the gradients by image noise and linearising gives the sandwich
 
