@@ -3,6 +3,9 @@ the refinement window must not reach the board's edge, whose gradients pull the 
 
 from __future__ import annotations
 
+import itertools
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -13,9 +16,10 @@ from edgecal.detection.subpixel import nearest_spacing, on_board_rim, refine_cor
 from edgecal.detection.tracking import track_boards
 from edgecal.detection.types import CornerPrediction
 from edgecal.synth.camera import camera_from_fov
+from edgecal.synth.handheld import handheld_rig, handheld_sequence
 from edgecal.synth.panels import panels_from_target
 from edgecal.synth.photometric import Photometric
-from edgecal.synth.scenes import planar_view
+from edgecal.synth.scenes import planar_view, random_camera
 from edgecal.synth.view import render_view
 from edgecal.targets import planar_target
 
@@ -143,12 +147,6 @@ def test_fisheye_outer_corners_are_never_usable_far_off(seed: int) -> None:
     # ~10 px from where its neighbours' homography puts it: seed 1 had the corner re-refined from that
     # prediction, kept on a square's edge 10.4 px off; seed 7 had cornerSubPix's start on the edge 7.7 px
     # off, neither fit seeing a corner there. Both were reported usable, sigma 0.7-1.1 px.
-    import itertools
-    from dataclasses import replace
-
-    from edgecal.synth.handheld import handheld_rig, handheld_sequence
-    from edgecal.synth.scenes import random_camera
-
     rig = handheld_rig([seed, 31], (640, 480), stereo=False)
     rig = replace(rig, left=random_camera(np.random.default_rng([seed, 32]), (640, 480), distortion="fisheye"))
     frame = next(itertools.islice(handheld_sequence([seed, 31], rig, n_poses=12, hold_frames=1, move_frames=0,

@@ -1,4 +1,4 @@
-"""The X-junction model fit (subpixel.xjunction_refine): the default refiner's last step."""
+"""The X-junction model fit (subpixel.xjunction_fit): the default refiner's last step."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from edgecal.detection.subpixel import (
     nearest_spacing,
     on_board_rim,
     saddle_refine,
+    xjunction_fit,
     xjunction_radius,
-    xjunction_refine,
 )
 from edgecal.scoring import FoundGrid, corner_rms, score_image
 from edgecal.synth.scenes import planar_view
@@ -55,7 +55,7 @@ def test_an_edge_near_a_pixel_axis_is_not_locked_to_the_pixel_grid(angle_deg: fl
             start = np.array([[32.4, 31.4]])
             spacing = np.array([30.0])
             saddle = saddle_refine(smooth_image(img, 1.0), start, spacing)
-            xj = xjunction_refine(img, saddle, np.radians([[angle_deg, angle_deg + 90.0]]), np.array([12.0]))
+            xj = xjunction_fit(img, saddle, np.radians([[angle_deg, angle_deg + 90.0]]), np.array([12.0]))[0]
             errors["saddle"].append(float(np.hypot(*(saddle[0] - centre))))
             errors["xjunction"].append(float(np.hypot(*(xj[0] - centre))))
     worst = {k: max(v) for k, v in errors.items()}
@@ -66,7 +66,7 @@ def test_a_slanted_junction_is_found_from_rough_line_directions() -> None:
     """Lines at 20 and 80 degrees (a foreshortened corner), started 0.4 px and 8 degrees off."""
     centre = (30.3, 33.7)
     img = _junction(centre, (20.0, 80.0), blur=1.2)
-    out = xjunction_refine(img, np.array([[30.6, 33.4]]), np.radians([[28.0, 72.0]]), np.array([10.0]))
+    out = xjunction_fit(img, np.array([[30.6, 33.4]]), np.radians([[28.0, 72.0]]), np.array([10.0]))[0]
     assert np.hypot(*(out[0] - centre)) < 0.01
 
 
@@ -87,7 +87,7 @@ def test_no_junction_or_a_disc_beyond_the_image_keeps_the_start() -> None:
     """A flat patch has no lines to fit and a disc past the border no pixels: both corners stay put."""
     flat = np.full((64, 64), 120, np.uint8)
     start = np.array([[32.0, 32.0], [3.0, 40.0]])
-    out = xjunction_refine(flat, start, np.radians([[0.0, 90.0], [0.0, 90.0]]), np.array([8.0, 8.0]))
+    out = xjunction_fit(flat, start, np.radians([[0.0, 90.0], [0.0, 90.0]]), np.array([8.0, 8.0]))[0]
     np.testing.assert_array_equal(out, start)
 
 

@@ -94,7 +94,7 @@ PIXEL_LOCK_PX = 0.007
 PROBE_NOISE_SHARE = 0.0  # see _saddle_covariance
 PIXEL_LOCK_LENGTH_PX = 1.3
 # The X-junction fit (the default refiner) against the saddle fit it starts from, measured by its author
-# (subpixel.xjunction_refine, commit 62d9d3d): noise-only repeats of one render give its corners 0.42 of the
+# (subpixel.xjunction_fit, commit 62d9d3d): noise-only repeats of one render give its corners 0.42 of the
 # saddle noise term's variance; noise-free renders binned by the edges' angle to the pixel axes 0.0061 /
 # 0.0033 px at 0-4 / 4-9 deg against the saddle fit's 0.0125 / 0.0108 (pixel locking about half).
 # Over bench/corner_noise.py's five conditions (24 views each, searched; XJUNCTION_LIGHT_PX fitted alongside) the
@@ -712,6 +712,8 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     alternating = np.zeros(n)
     if refiner in ("saddle", "xjunction"):
         fitted = (sd[:, S_OK] > 0) & inside_window
+        # the corners the X-junction fit placed (all by default)
+        xj = np.ones(n, dtype=bool) if xjunction_fitted is None else np.asarray(xjunction_fitted, bool).reshape(n)
         if boards is not None:
             sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
         read = fitted & (np.abs(sd[:, S_LEVEL]) > 1.0)
@@ -723,7 +725,7 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
             g2[read] = np.maximum(np.sum(light[read] ** 2, axis=1)
                                   - noise2 * (sd[read, S_LNXX] + sd[read, S_LNYY]) / sd[read, S_LEVEL] ** 2, 0.0)
             light_px = XJUNCTION_LIGHT_PX * xjunction_disc_radius(spacing) * np.sqrt(g2)
-            placed = fitted if xjunction_fitted is None else fitted & np.asarray(xjunction_fitted, bool).reshape(n)
+            placed = fitted & xj
             alternating[placed] = light_px[placed] ** 2
             bend = np.zeros(n) if bend_px is None else np.asarray(bend_px, dtype=np.float64).reshape(n)
             cov[placed] = _xjunction_covariance(sd[placed], noise2, light_px[placed], bend[placed])
@@ -744,7 +746,7 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         # corner of 7244); on ocamcalib_urban_fisheye1 6 of 717 corners, sigma 1.4-21 px
         unfitted = inside_window & ~fitted
         if refiner == "xjunction" and xjunction_fitted is not None:
-            unfitted &= ~np.asarray(xjunction_fitted, bool).reshape(n)
+            unfitted &= ~xj
     else:
         disagree = np.zeros(n, dtype=bool)
         unfitted = np.zeros(n, dtype=bool)
@@ -819,7 +821,7 @@ def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
 
 
 def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray, bend_px: np.ndarray) -> np.ndarray:
-    """Corners the X-junction fit polished (subpixel.xjunction_refine; N, 2, 2) from the saddle fit's
+    """Corners the X-junction fit polished (subpixel.xjunction_fit; N, 2, 2) from the saddle fit's
     statistics sd (N, N_SADDLE) at them: its noise term and pixel locking scaled by what that fit measured
     against it (XJUNCTION_NOISE_SHARE, XJUNCTION_LOCK_SHARE), its floor (XJUNCTION_FLOOR_PX), and the light
     field's shift ``light_px`` (N,) px per axis (XJUNCTION_LIGHT_PX) and BEND_ERROR_SHARE of the lens-bend

@@ -1,7 +1,7 @@
 """What a lens's bent grid lines do to the X-junction fit: the shift of its straight-line model, predicted
 from the board's own corners.
 
-The X-junction fit (subpixel.xjunction_refine) models a corner as two straight edges over a disc of radius
+The X-junction fit (subpixel.xjunction_fit) models a corner as two straight edges over a disc of radius
 r. Through a lens that bends straight lines (a fisheye most) an edge is an arc of curvature kappa, and the
 straight line fitted to it over the disc sits where the arc is on average: its offset at the corner is the
 mean of kappa s^2 / 2 over the disc's length of edge, s in [-r, r], i.e. kappa r^2 / 6, towards the arc's

@@ -1,5 +1,5 @@
 """Step 5: sub-pixel localisation of accepted corners (cv2.cornerSubPix while searching; a saddle fit and an
-X-junction model fit for the final corners, see saddle_refine, xjunction_refine and REFINERS).
+X-junction model fit for the final corners, see saddle_refine, xjunction_fit and REFINERS).
 
 cv2.cornerSubPix (gradient orthogonality: every gradient in the window is perpendicular to the vector from
 the corner) is accurate to ~0.01 px on clean corners when its window holds only this corner's two edges,
@@ -522,7 +522,7 @@ def nearest_spacing(pts: np.ndarray) -> np.ndarray:
 # The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, followed by the
 # saddle fit (more accurate on every rendered set, see saddle_refine), or followed by the saddle fit and the
 # X-junction model fit from its result (the default: more accurate again on every rendered set, see
-# xjunction_refine).
+# xjunction_fit).
 REFINERS = ("cornersubpix", "saddle", "xjunction")
 
 # Saddle fit: a quadratic surface fitted to the image around each corner, the corner at its saddle point.
@@ -1030,13 +1030,6 @@ def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) 
                                          np.ascontiguousarray(ids[rim] - lo), np.floor(radius[rim]))
     radius[rim] = np.where(reaches, np.minimum(radius[rim], room), radius[rim])
     return radius
-
-
-def xjunction_refine(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray,
-                     max_move_px: float = 1.0) -> np.ndarray:
-    """Corners (M, 2) moved to where a blurred X-junction fitted to the raw ``image`` (H, W) in a disc of
-    ``radius`` (M,) px (xjunction_radius) around each puts them: xjunction_fit's corners."""
-    return xjunction_fit(image, pts, angles, radius, max_move_px)[0]
 
 
 def xjunction_fit(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray,

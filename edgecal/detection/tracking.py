@@ -319,9 +319,9 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         # then the refiner of the full search (the saddle fit, the X-junction fit on the raw crop): tracked
         # corners as accurate as searched ones (cornerSubPix alone left the hard sequence's tracked pose ~3x
         # less accurate than the searched one)
-        fitted, bend = np.zeros(len(xy), dtype=bool), np.zeros(len(xy))
         if p.subpixel_refiner != "cornersubpix":
-            xy, fitted, bend = polish_corners(crop, smooth, saddle_refine(smooth, xy, window), ids, p)
+            xy = saddle_refine(smooth, xy, window)
+        xy, fitted, bend = polish_corners(crop, smooth, xy, ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
