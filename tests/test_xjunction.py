@@ -70,6 +70,34 @@ def test_a_slanted_junction_is_found_from_rough_line_directions() -> None:
     assert np.hypot(*(out[0] - centre)) < 0.01
 
 
+@pytest.mark.parametrize(("blur", "angles_deg", "noise"), [(0.8, (10.0, 100.0), 4.0), (2.0, (25.0, 70.0), 6.0)])
+def test_the_fits_noise_covariance_matches_the_scatter_under_white_noise(
+        blur: float, angles_deg: tuple[float, float], noise: float) -> None:
+    """One junction (sharp and square, or blurred and slanted) under 300 draws of white noise: the scatter of
+    the fitted corners matches noise^2 x the fit's covariance per unit noise variance (its third output), per
+    axis and in the correlation, to the sampling error of 300 draws; and a corner it did not fit has NaN."""
+    centre = (32.3, 31.6)
+    clean = _junction(centre, angles_deg, blur).astype(np.float64)
+    rng = np.random.default_rng(5)
+    start = np.array([[32.0, 32.0]])
+    angles = np.radians([angles_deg])
+    fits, covs = [], []
+    for _ in range(300):
+        img = np.clip(np.rint(clean + rng.normal(0.0, noise, clean.shape)), 0, 255).astype(np.uint8)
+        out, fitted, cov = xjunction_fit(img, start, angles, np.array([10.0]))
+        assert fitted[0]
+        fits.append(out[0])
+        covs.append(cov[0])
+    scatter = np.cov(np.array(fits).T)
+    predicted = noise ** 2 * np.mean(covs, axis=0)
+    ratio = np.diag(scatter) / np.diag(predicted)
+    assert np.all((ratio > 0.75) & (ratio < 1.3)), (ratio, scatter, predicted)
+    corr = lambda c: c[0, 1] / np.sqrt(c[0, 0] * c[1, 1])  # noqa: E731
+    assert abs(corr(scatter) - corr(predicted)) < 0.15, (scatter, predicted)
+    _out, fitted, cov = xjunction_fit(np.full((64, 64), 120, np.uint8), start, angles, np.array([10.0]))
+    assert not fitted[0] and np.isnan(cov).all()
+
+
 def test_the_fits_exp_matches_math_exp_to_an_ulp() -> None:
     """The arithmetic exp(-u^2) of the fit's SIMD loop against math.exp over every argument it sees (u from
     0 to the flat edge of the sharpest blur), and a clean floor far beyond."""

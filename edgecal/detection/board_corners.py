@@ -42,12 +42,14 @@ def final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: Detect
 
 
 def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(corners, fitted (N,) bool, bend_px (N,)): an accepted board's corners ``xy`` (N, 2; ``ids`` (N, 2):
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(corners, fitted (N,) bool, bend_px (N,), noise (N, 2, 2)): an accepted board's corners ``xy`` (N, 2;
+    ``ids`` (N, 2):
     col, row) from final_corners, moved by the X-junction fit on the raw image ``grey`` (refiner "xjunction";
     unchanged otherwise), each in its disc (xjunction_radius on ``smooth``) from the grid's line directions
     there, and less the fit's shift on a lens-bent grid (line_bend.bend_shift); ``fitted``: the corners it
-    placed (the others keep their start); ``bend_px``: the length of the shift taken off each (0 elsewhere).
+    placed (the others keep their start); ``bend_px``: the length of the shift taken off each (0 elsewhere);
+    ``noise``: the fit's covariance per unit image noise variance (xjunction_fit; NaN where not placed).
 
     Only the corners a detection reports: the checks that accept a board (its regularity, whether it is
     part of a larger grid) keep working on final_corners' corners, so the X-junction fit changes where
@@ -55,12 +57,12 @@ def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np
     hundredths of a pixel let completion grow a board by a false line along the next face).
     """
     if p.subpixel_refiner != "xjunction" or not len(xy):
-        return xy, np.zeros(len(xy), dtype=bool), np.zeros(len(xy))
+        return xy, np.zeros(len(xy), dtype=bool), np.zeros(len(xy)), np.full((len(xy), 2, 2), np.nan)
     angles, radius = grid_line_angles(xy, ids), xjunction_radius(smooth, xy, ids)
-    out, fitted = xjunction_fit(grey, xy, angles, radius)
+    out, fitted, noise = xjunction_fit(grey, xy, angles, radius)
     # the fit's straight lines sit off a lens-bent grid's edges (line_bend): the corners it placed put back
     shift = fitted[:, None] * bend_shift(out, ids, angles, radius)
-    return out - shift, fitted, np.hypot(shift[:, 0], shift[:, 1])
+    return out - shift, fitted, np.hypot(shift[:, 0], shift[:, 1]), noise
 
 
 def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:

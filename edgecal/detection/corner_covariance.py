@@ -97,17 +97,22 @@ PIXEL_LOCK_LENGTH_PX = 1.3
 # (subpixel.xjunction_fit, commit 62d9d3d): noise-only repeats of one render give its corners 0.42 of the
 # saddle noise term's variance; noise-free renders binned by the edges' angle to the pixel axes 0.0061 /
 # 0.0033 px at 0-4 / 4-9 deg against the saddle fit's 0.0125 / 0.0108 (pixel locking about half).
-# Over bench/corner_noise.py's five conditions (24 views each, searched; XJUNCTION_LIGHT_PX fitted alongside) the
-# hard renders (blur 1-2.5 px, noise 3-8, JPEG) need a gain of 1.3 on that noise term (normalised error 3.5 with
-# 0.42), the others none (1.7-2.6); the robot sequences' corners, without JPEG, had 1.55 (normal, 8 ms motion
-# blur) and 3.3 (hard) with 0.42. 0.50 (1.2x) is taken: a gain that grows with the blur would fit both better.
+# The X-junction fit's noise term is its own: the position block of its (J^T W J)^-1 times the image's noise
+# variance (subpixel.xjunction_fit, Detection.xjunction_noise), which counts the blur, contrast and disc it
+# fitted; no gain. It replaced XJUNCTION_NOISE_SHARE x the saddle fit's term (which stays for corners given
+# without it), whose one share could not fit both blurs: the robot sequences' corners, normalised error
+# normal + 8 ms motion blur 1.51 (x 0.84, y 0.66 per axis) and the pose's sigma 1.2-1.6x too large there
+# (bench/live.py, 298 frames: y 0.62, rx 0.66), while bench/corner_noise.py's hard renders were at 3.0. With
+# the fit's own term (24 views per condition): corner_noise 1.93-2.67 (was 1.98-3.07), robot normal corners
+# 1.76 (x 0.87, y 0.85), its pose's ratios 0.81-0.90.
 XJUNCTION_NOISE_SHARE = 0.50
 XJUNCTION_LOCK_SHARE = 0.5
-# The X-junction fit's own floor: its corners' errors beyond noise and pixel locking, fitted (with the
-# locking's amplitude and length) over bench/corner_noise.py's clean and foreshortened renders (40 views
-# each): 0.000 and 0.0025-0.0028 px per axis. The saddle fit's 0.002 made the clean renders' covariances
-# too wide (normalised error 1.44, median 0.73); 0.001 is taken.
-XJUNCTION_FLOOR_PX = 0.001
+# The X-junction fit's own floor: its corners' errors beyond noise and pixel locking. Fitted first (with the
+# saddle fit's noise term scaled) over bench/corner_noise.py's clean and foreshortened renders, 0.000 and
+# 0.0025-0.0028 px per axis: 0.001. With the fit's own noise term (smaller on clean renders, which have only
+# quantisation noise) the robot sequence's clean corners had a normalised error of 3.27 and its pose z
+# ratio 1.42; 0.0015 px: 2.95, pose ratios 0.82-1.32, corner_noise clean 1.95 (0.002: 2.64, 0.75-1.21, 1.58).
+XJUNCTION_FLOOR_PX = 0.0015
 # The lens-bend correction (line_bend) is a first-order model read off the board's own noisy corners: its
 # error grows with the shift it takes off. On bench/calibrate.py's rendered fisheye hand-held sessions (24
 # seeds, ~7,400 X-junction corners, clean and normal photometry) the normalised error was 52 and 9.0 (180
@@ -661,8 +666,8 @@ class CornerCovariances(NamedTuple):
 def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray,
                       spacing: np.ndarray | None = None, noise_sigma: float | None = None, *, refiner: str,
                       steps: np.ndarray | None = None, boards: np.ndarray | None = None,
-                      xjunction_fitted: np.ndarray | None = None, bend_px: np.ndarray | None = None
-                      ) -> CornerCovariances:
+                      xjunction_fitted: np.ndarray | None = None, bend_px: np.ndarray | None = None,
+                      xjunction_noise: np.ndarray | None = None) -> CornerCovariances:
     """2x2 covariance (px^2, OpenCV pixel axes) of each refined corner, the part its board's corners share,
     and why a corner is unusable (CornerCovariances).
 
@@ -678,7 +683,8 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     each corner alone). xjunction_fitted: (N,) bool, refiner "xjunction": the corners its fit placed
     (Detection.xjunction_fitted; default all); the others get the saddle fit's covariance. bend_px: (N,)
     the lens-bend correction's length on each (Detection.bend_px; default none), BEND_ERROR_SHARE of it
-    added per axis.
+    added per axis. xjunction_noise: (N, 2, 2) the X-junction fit's covariance per unit noise variance
+    (Detection.xjunction_noise), its corners' noise term (default, or NaN: the saddle fit's, scaled).
     """
     if refiner not in REFINERS:
         raise ValueError(f"unknown refiner {refiner!r} ({', '.join(REFINERS)})")
@@ -728,7 +734,9 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
             placed = fitted & xj
             alternating[placed] = light_px[placed] ** 2
             bend = np.zeros(n) if bend_px is None else np.asarray(bend_px, dtype=np.float64).reshape(n)
-            cov[placed] = _xjunction_covariance(sd[placed], noise2, light_px[placed], bend[placed])
+            fit_noise = (np.full((n, 2, 2), np.nan) if xjunction_noise is None
+                         else np.asarray(xjunction_noise, dtype=np.float64).reshape(n, 2, 2))
+            cov[placed] = _xjunction_covariance(sd[placed], noise2, light_px[placed], bend[placed], fit_noise[placed])
             held = fitted & ~placed            # where the X-junction fit did not run: the saddle fit's corner
             cov[held] = _saddle_covariance(sd[held], noise2)
         else:
@@ -820,10 +828,12 @@ def _saddle_covariance(sd: np.ndarray, noise2: float) -> np.ndarray:
     return saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
 
 
-def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray, bend_px: np.ndarray) -> np.ndarray:
-    """Corners the X-junction fit polished (subpixel.xjunction_fit; N, 2, 2) from the saddle fit's
-    statistics sd (N, N_SADDLE) at them: its noise term and pixel locking scaled by what that fit measured
-    against it (XJUNCTION_NOISE_SHARE, XJUNCTION_LOCK_SHARE), its floor (XJUNCTION_FLOOR_PX), and the light
+def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray, bend_px: np.ndarray,
+                          fit_noise: np.ndarray) -> np.ndarray:
+    """Corners the X-junction fit polished (subpixel.xjunction_fit; N, 2, 2): its own noise term, ``noise2``
+    times ``fit_noise`` (N, 2, 2; Detection.xjunction_noise) - where that is NaN the saddle fit's term from
+    its statistics sd (N, N_SADDLE) times XJUNCTION_NOISE_SHARE -, the saddle fit's pixel locking scaled by
+    what the X-junction fit measured against it (XJUNCTION_LOCK_SHARE), its floor (XJUNCTION_FLOOR_PX), and the light
     field's shift ``light_px`` (N,) px per axis (XJUNCTION_LIGHT_PX) and BEND_ERROR_SHARE of the lens-bend
     correction ``bend_px`` (N,) px. Not the saddle fit's light term H^-1 m nor its remaining step (the
     distance the polish moved the corner, not an error). Pixel locking stays isotropic: put across the
@@ -833,7 +843,10 @@ def _xjunction_covariance(sd: np.ndarray, noise2: float, light_px: np.ndarray, b
     model2 = (XJUNCTION_FLOOR_PX ** 2 + (XJUNCTION_LOCK_SHARE * PIXEL_LOCK_PX) ** 2 * _locking(sd)
               + np.asarray(light_px, dtype=np.float64) ** 2
               + (BEND_ERROR_SHARE * np.asarray(bend_px, np.float64)) ** 2)
-    return XJUNCTION_NOISE_SHARE * saddle_noise_term(sd, noise2) + model2[:, None, None] * np.eye(2)
+    noise = XJUNCTION_NOISE_SHARE * saddle_noise_term(sd, noise2)
+    own = np.isfinite(fit_noise).all(axis=(1, 2))
+    noise[own] = noise2 * fit_noise[own]
+    return noise + model2[:, None, None] * np.eye(2)
 
 
 def _locking(sd: np.ndarray) -> np.ndarray:
@@ -920,8 +933,11 @@ def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth:
     boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
     placed = [np.ones(len(d.corners), bool) if d.xjunction_fitted is None else d.xjunction_fitted for d in detections]
     bend = [np.zeros(len(d.corners)) if d.bend_px is None else d.bend_px for d in detections]
+    fit_noise = [np.full((len(d.corners), 2, 2), np.nan) if d.xjunction_noise is None else d.xjunction_noise
+                 for d in detections]
     cc = corner_covariance(grey, smooth, smoothing_sigma, xy, windows, noise_sigma, refiner=refiner, steps=steps,
-                           boards=boards, xjunction_fitted=np.concatenate(placed), bend_px=np.concatenate(bend))
+                           boards=boards, xjunction_fitted=np.concatenate(placed), bend_px=np.concatenate(bend),
+                           xjunction_noise=np.concatenate(fit_noise))
     start = 0
     for d in detections:
         end = start + len(d.corners)

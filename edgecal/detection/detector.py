@@ -260,7 +260,8 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
                               level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
         if len(grown) > len(xy):
             return None
-        xy, det.xjunction_fitted, det.bend_px = polish_corners(level.grey, level.smooth, xy, det.ids, p)
+        xy, det.xjunction_fitted, det.bend_px, det.xjunction_noise = polish_corners(level.grey, level.smooth, xy,
+                                                                                   det.ids, p)
         det.corners = xy + level.origin
         det.quality = _corner_quality(level, xy, p)
     return (DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
@@ -386,13 +387,14 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
-        fitted, bend = np.zeros(len(xy), dtype=bool), np.zeros(len(xy))
+        fitted, bend, noise = np.zeros(len(xy), dtype=bool), np.zeros(len(xy)), np.full((len(xy), 2, 2), np.nan)
         if not provisional:  # (a provisional board's corners are refined again at full resolution)
-            xy, fitted, bend = polish_corners(level.grey, smooth, xy, ids, p)
+            xy, fitted, bend, noise = polish_corners(level.grey, smooth, xy, ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows),
-                                          xjunction_fitted=fitted[order], bend_px=bend[order]))
+                                          xjunction_fitted=fitted[order], bend_px=bend[order],
+                                          xjunction_noise=noise[order]))
         used_boards.add(board.name)
     number_copies(debug.detections)
     for note in notes:

@@ -794,7 +794,7 @@ def _xj_sign(x0: float, y0: float, t1: float, t2: float, x: float, y: float) -> 
 # fast maths without assuming finite values: the NaN checks of a failed solve must stay
 @njit(cache=True, nogil=True, fastmath={"contract", "afn", "reassoc", "arcp", "nsz"})
 def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray, iterations: int,
-                      max_move: float, converged: float) -> tuple[np.ndarray, np.ndarray]:
+                      max_move: float, converged: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """xjunction_fit for all corners in one pass (see there): ``img`` (H, W) the raw image, ``pts`` (M, 2)
     the starts, ``angles`` (M, 2) the two lines' directions there (radians), ``radius`` (M,) px the disc.
     A corner keeps its start (fitted False) when its disc is below _XJ_RADIUS_PX or leaves the image, the
@@ -803,6 +803,7 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
     m = pts.shape[0]
     out = pts.copy()
     fitted = np.zeros(m, dtype=np.bool_)
+    noise_cov = np.full((m, 2, 2), np.nan)
     r_max = int(math.ceil(radius.max() + 0.5)) if m else 0
     px = np.empty((2 * r_max + 1) ** 2)
     py = np.empty_like(px)
@@ -892,7 +893,27 @@ def _xjunction_kernel(img: np.ndarray, pts: np.ndarray, angles: np.ndarray, radi
             out[i, 1] = p[1]
             fitted[i] = True
             blur = p[4]
-    return out, fitted
+            # the position block of (J^T W J)^-1 from the last step's Cholesky factor L (jtj, lower triangle;
+            # damped by 1e-6 at most): A^-1_ij = (L^-1 e_i) . (L^-1 e_j)
+            z0 = _forward_unit(jtj, 0)
+            z1 = _forward_unit(jtj, 1)
+            noise_cov[i, 0, 0] = np.dot(z0, z0)
+            noise_cov[i, 0, 1] = noise_cov[i, 1, 0] = np.dot(z0, z1)
+            noise_cov[i, 1, 1] = np.dot(z1, z1)
+    return out, fitted, noise_cov
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _forward_unit(lower: np.ndarray, j: int) -> np.ndarray:
+    """L^-1 e_j for the lower-triangular ``lower`` (n, n) that solve_spd leaves (its upper triangle ignored)."""
+    n = lower.shape[0]
+    z = np.zeros(n)
+    for i in range(j, n):
+        v = 1.0 if i == j else 0.0
+        for k in range(j, i):
+            v -= lower[i, k] * z[k]
+        z[i] = v / lower[i, i]
+    return z
 
 
 # fast maths as the fit's (no NaN or inf assumed away), and numpy's division (no ZeroDivisionError branch, which
@@ -1033,9 +1054,12 @@ def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) 
 
 
 def xjunction_fit(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius: np.ndarray,
-                  max_move_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """(corners (M, 2), fitted (M,) bool): where a blurred X-junction fitted to the raw ``image`` (H, W) in a
-    disc of ``radius`` (M,) px (xjunction_radius) around each corner puts it, and which corners it moved.
+                  max_move_px: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(corners (M, 2), fitted (M,) bool, noise (M, 2, 2)): where a blurred X-junction fitted to the raw
+    ``image`` (H, W) in a disc of ``radius`` (M,) px (xjunction_radius) around each corner puts it, which
+    corners it moved, and the covariance of each fitted corner (px^2) per unit variance of white noise in the
+    image: the position block of the fit's (J^T W J)^-1, its blur, contrast and disc counted (NaN where not
+    fitted).
 
     Starts from ``pts`` (the saddle fit's corners) and the directions of the two lines through each,
     ``angles`` (M, 2) radians (grid_line_angles); a corner whose fit does not converge, moves more than
@@ -1043,7 +1067,7 @@ def xjunction_fit(image: np.ndarray, pts: np.ndarray, angles: np.ndarray, radius
     """
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     if len(pts) == 0:
-        return pts.copy(), np.zeros(0, dtype=bool)
+        return pts.copy(), np.zeros(0, dtype=bool), np.zeros((0, 2, 2))
     radius = np.ascontiguousarray(np.asarray(radius, dtype=np.float64).reshape(-1))
     angles = np.ascontiguousarray(np.asarray(angles, dtype=np.float64).reshape(-1, 2))
     return _xjunction_kernel(image, pts, angles, radius, _XJ_ITERATIONS, float(max_move_px), _XJ_CONVERGED_PX)

@@ -321,12 +321,13 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         # less accurate than the searched one)
         if p.subpixel_refiner != "cornersubpix":
             xy = saddle_refine(smooth, xy, window)
-        xy, fitted, bend = polish_corners(crop, smooth, xy, ids, p)
+        xy, fitted, bend, noise = polish_corners(crop, smooth, xy, ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         board = pr.board
         found.append(Detection(board.name, xy[order] + offset, ids[order], quality[order],
                                (board.cols, board.rows), complete=len(ids) == board.n_corners,
-                               xjunction_fitted=fitted[order], bend_px=bend[order]))
+                               xjunction_fitted=fitted[order], bend_px=bend[order],
+                               xjunction_noise=noise[order]))
         windows.append(sp[order])
     # The corners' covariances, all boards in one call, on the crop they were refined on; the noise from the
     # whole image: in a crop the board fills, its edges inflate the half-resolution estimate up to 2x.

@@ -34,6 +34,9 @@ class Detection:
              them, for the refiner's covariance.
     bend_px: (N,) float64, the length (px) of the lens-bend correction taken off each X-junction corner
              (edgecal.detection.line_bend; 0 where none was), which its covariance counts; None: none.
+    xjunction_noise: (N, 2, 2) float64, the X-junction fit's covariance of each corner it placed per unit
+             variance of the image noise (px^2 per grey level^2; subpixel.xjunction_fit), NaN elsewhere; its
+             covariance's noise term; None: not fitted (the saddle fit's noise term stands in).
     """
 
     board: str
@@ -50,6 +53,7 @@ class Detection:
     alternating_px2: np.ndarray | None = None
     xjunction_fitted: np.ndarray | None = None
     bend_px: np.ndarray | None = None
+    xjunction_noise: np.ndarray | None = None
 
     def usable(self) -> np.ndarray:
         """(N,) bool: corners with a positive-definite covariance (all when none was computed)."""
