@@ -17,6 +17,7 @@ from edgecal.detection.corner_covariance import (
     REASON_DEGENERATE,
     REASON_DISAGREE,
     REASON_FLAT,
+    _grid_steps_of_boards,
     corner_covariance,
     corner_statistics,
     covariance_noise_sigma,
@@ -186,6 +187,11 @@ def test_grid_steps() -> None:
     assert np.allclose(steps[1, 0], [11.0, 1.0]) and np.allclose(steps[0, 0], [10.0, 1.0])
     assert np.allclose(steps[2, 0], [12.0, 1.0]) and np.allclose(steps[0, 1], [0.0, 9.0])
     assert np.isnan(steps[1, 1]).all() and np.isnan(steps[4]).all()
+    # add_board_covariances' kernel over several boards in one pass: the same steps per board
+    ids2 = np.array([[3, 4], [4, 4], [3, 5], [4, 5], [5, 5]])
+    xy2 = np.array([[5.0, 5.0], [15.0, 6.0], [4.0, 14.0], [14.5, 15.0], [25.0, 16.0]])
+    both = _grid_steps_of_boards(np.concatenate([ids, ids2]), np.concatenate([xy, xy2]), np.array([0, 5, 10]))
+    np.testing.assert_array_equal(both, np.concatenate([steps, grid_steps(ids2, xy2)]))
 
 
 @pytest.mark.parametrize("refiner", ["xjunction", "saddle", "cornersubpix"])

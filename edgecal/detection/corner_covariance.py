@@ -44,6 +44,7 @@ corners.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -632,11 +633,18 @@ def _saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray
 
 def noise_kernel(smoothing_sigma: float) -> np.ndarray:
     """The detector's 1-D Gaussian (candidates.smooth_image), float64: how one raw pixel's noise reaches the
-    smoothed image."""
+    smoothed image (read-only: one array per sigma, made once)."""
+    return _noise_kernel(float(smoothing_sigma))
+
+
+@lru_cache(maxsize=64)
+def _noise_kernel(smoothing_sigma: float) -> np.ndarray:
     import cv2
 
     ksize = 2 * int(np.ceil(2.5 * smoothing_sigma)) + 1
-    return cv2.getGaussianKernel(ksize, smoothing_sigma, cv2.CV_64F).ravel()
+    kernel = cv2.getGaussianKernel(ksize, smoothing_sigma, cv2.CV_64F).ravel()
+    kernel.setflags(write=False)
+    return kernel
 
 
 class CornerCovariances(NamedTuple):
@@ -1118,6 +1126,41 @@ def grid_steps(ids: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True, nogil=True)
+def _grid_steps_of_boards(ids: np.ndarray, corners: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """grid_steps of several boards in one pass: corners bounds[b]:bounds[b + 1] of ``ids`` (N, 2) int64 and
+    ``corners`` (N, 2) are board b's. The same differences, per coordinate, as grid_steps."""
+    n = ids.shape[0]
+    out = np.full((n, 2, 2), np.nan)
+    for b in range(bounds.shape[0] - 1):
+        s, e = bounds[b], bounds[b + 1]
+        if e <= s:
+            continue
+        lo_c, lo_r = ids[s, 0], ids[s, 1]
+        hi_c, hi_r = lo_c, lo_r
+        for i in range(s, e):
+            lo_c = min(lo_c, ids[i, 0])
+            lo_r = min(lo_r, ids[i, 1])
+            hi_c = max(hi_c, ids[i, 0])
+            hi_r = max(hi_r, ids[i, 1])
+        grid = np.full((hi_r - lo_r + 3, hi_c - lo_c + 3, 2), np.nan)
+        for i in range(s, e):
+            grid[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 0] = corners[i, 0]
+            grid[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 1] = corners[i, 1]
+        for i in range(s, e):
+            c = ids[i, 0] - lo_c + 1
+            r = ids[i, 1] - lo_r + 1
+            for k in range(2):
+                dc = 1 - k
+                dr = k
+                for j in range(2):
+                    ahead = grid[r + dr, c + dc, j] - corners[i, j]
+                    behind = corners[i, j] - grid[r - dr, c - dc, j]
+                    both = 0.5 * (ahead + behind)
+                    out[i, k, j] = both if math.isfinite(both) else (ahead if math.isfinite(ahead) else behind)
+    return out
+
+
 def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float,
                     noise_sigma: float, refiner: str, origin: np.ndarray | None = None,
                     spacing: list[np.ndarray] | None = None) -> None:
@@ -1129,10 +1172,13 @@ def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth:
     if not detections:
         return
     origin = np.zeros(2) if origin is None else np.asarray(origin, dtype=np.float64)
-    xy = np.concatenate([d.corners for d in detections]) - origin
+    corners = np.concatenate([d.corners for d in detections]).astype(np.float64)
+    xy = corners - origin
     windows = np.concatenate(spacing if spacing is not None else [nearest_spacing(d.corners) for d in detections])
-    steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
-    boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
+    counts = [len(d.corners) for d in detections]
+    steps = _grid_steps_of_boards(np.concatenate([d.ids for d in detections]).astype(np.int64), corners,
+                                  np.cumsum([0, *counts]).astype(np.int64))
+    boards = np.repeat(np.arange(len(detections)), counts)
     placed = [np.ones(len(d.corners), bool) if d.xjunction_fitted is None else d.xjunction_fitted for d in detections]
     bend = [np.zeros(len(d.corners)) if d.bend_px is None else d.bend_px for d in detections]
     cc = corner_covariance(grey, smooth, smoothing_sigma, xy, windows, noise_sigma, refiner=refiner, steps=steps,
