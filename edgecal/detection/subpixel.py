@@ -364,15 +364,18 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
     start = np.array(pts, dtype=np.float32).reshape(-1, 2)
     if len(start) == 0:
         return start.astype(np.float64)
-    spacing = np.ascontiguousarray(np.broadcast_to(np.asarray(spacing, np.float64), (len(start),)))
+    spacing = np.asarray(spacing, np.float64)
+    # (np.broadcast_to only where needed: it costs more than the small calls' bookkeeping it serves)
+    spacing = np.ascontiguousarray(spacing.reshape(-1) if spacing.size == len(start) and spacing.ndim <= 1
+                                   else np.broadcast_to(spacing, (len(start),)))
     h, w = smooth.shape
-    order, sizes = _refinement_plan(start, spacing, h, w)
+    order, sizes, bounds = _refinement_plan(start, spacing, h, w)
     if len(order) == 0:
         return start.astype(np.float64)
     block = start[order].reshape(-1, 1, 2)
-    # one call per run of equal sizes (plain lists: np.r_ cost more than a small call's refinement)
-    bounds = [0, *(np.flatnonzero(sizes[1:] != sizes[:-1]) + 1).tolist(), len(order)]
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    # one call per run of equal sizes
+    edges = bounds.tolist()
+    for a, b in zip(edges[:-1], edges[1:]):
         part = block[a:b]  # a contiguous view: cornerSubPix refines it in place
         size = int(sizes[a])
         cv2.cornerSubPix(smooth, part, (size, size), (-1, -1), criteria)
@@ -380,10 +383,12 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The points of ``start`` (M, 2) float32 whose cornerSubPix window (subpixel_window of ``spacing``
     (M,), of 6 px where a point or its spacing is not finite) lies inside an h x w image, sorted by window
-    half-width (stable): (their indices (K,), half-widths (K,))."""
+    half-width (stable): (their indices (K,), half-widths (K,), the bounds of the runs of one half-width
+    (R + 1,): run r is [bounds[r], bounds[r + 1]))."""
     m = start.shape[0]
     half = np.empty(m, np.int64)
     ok = np.zeros(m, np.bool_)
@@ -404,13 +409,23 @@ def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int) -> 
     n = first[12] + count[12]
     order = np.empty(n, np.int64)
     sizes = np.empty(n, np.int64)
+    runs = 0
+    for hw in range(13):
+        runs += count[hw] > 0
+    bounds = np.empty(runs + 1, np.int64)
+    bounds[0] = 0
+    r = 1
+    for hw in range(13):
+        if count[hw] > 0:
+            bounds[r] = first[hw] + count[hw]
+            r += 1
     for i in range(m):
         if ok[i]:
             k = first[half[i]]
             order[k] = i
             sizes[k] = half[i]
             first[half[i]] += 1
-    return order, sizes
+    return order, sizes, bounds
 
 
 @njit(cache=True, nogil=True)
