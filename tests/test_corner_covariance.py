@@ -17,8 +17,11 @@ from edgecal.detection.corner_covariance import (
     REASON_DEGENERATE,
     REASON_DISAGREE,
     REASON_FLAT,
+    _grid_steps_of_boards,
     corner_covariance,
+    corner_statistics,
     covariance_noise_sigma,
+    covariances_reference,
     grid_steps,
     noise_kernel,
     saddle_noise_term,
@@ -184,6 +187,43 @@ def test_grid_steps() -> None:
     assert np.allclose(steps[1, 0], [11.0, 1.0]) and np.allclose(steps[0, 0], [10.0, 1.0])
     assert np.allclose(steps[2, 0], [12.0, 1.0]) and np.allclose(steps[0, 1], [0.0, 9.0])
     assert np.isnan(steps[1, 1]).all() and np.isnan(steps[4]).all()
+    # add_board_covariances' kernel over several boards in one pass: the same steps per board
+    ids2 = np.array([[3, 4], [4, 4], [3, 5], [4, 5], [5, 5]])
+    xy2 = np.array([[5.0, 5.0], [15.0, 6.0], [4.0, 14.0], [14.5, 15.0], [25.0, 16.0]])
+    both = _grid_steps_of_boards(np.concatenate([ids, ids2]), np.concatenate([xy, xy2]), np.array([0, 5, 10]))
+    np.testing.assert_array_equal(both, np.concatenate([steps, grid_steps(ids2, xy2)]))
+
+
+@pytest.mark.parametrize("refiner", ["xjunction", "saddle", "cornersubpix"])
+def test_covariance_kernel_matches_the_numpy_reference(refiner: str) -> None:
+    """corner_covariance's one-pass kernel gives covariances_reference's covariances, shares, light gradients
+    and reasons, to rounding: on two boards (light averaged per board) of a render under uneven light, with
+    some corners not placed by the X-junction fit, a lens-bend share, the fit's own noise term on most
+    corners (NaN on some: the saddle fit's scaled) and corners at the border and off the board (unusable
+    for different reasons)."""
+    view = _view("light", 1)
+    det = edgecal.detect(view.image, TARGET)[0]
+    sigma = smoothing_sigma(2.0)
+    smooth = smooth_image(view.image, sigma)
+    h, w = view.image.shape
+    pts = np.concatenate([det.corners, [[3.0, 3.0], [w - 2.0, h / 2], [w / 2, 5.0], [10.0, h / 2]]])
+    n = len(pts)
+    spacing = np.concatenate([nearest_spacing(det.corners), np.full(4, 20.0)])
+    boards = (np.arange(n) >= n // 2).astype(np.int64)
+    fitted = np.arange(n) % 7 != 3
+    bend = 0.01 * (np.arange(n) % 5)
+    steps = np.concatenate([grid_steps(det.ids, det.corners), np.full((4, 2, 2), np.nan)])
+    fit_noise = np.concatenate([det.xjunction_noise, np.full((4, 2, 2), np.nan)])
+    fit_noise[::5] = np.nan
+    cc = corner_covariance(view.image, smooth, sigma, pts, spacing, 2.0, refiner=refiner, steps=steps,
+                           boards=boards, xjunction_fitted=fitted, bend_px=bend, xjunction_noise=fit_noise)
+    st, sd, half = corner_statistics(smooth, sigma, np.ascontiguousarray(pts), spacing, refiner, steps)
+    ref = covariances_reference(st, sd, half, spacing, 4.0, refiner, boards, fitted, bend, fit_noise)
+    assert cc.unusable == ref.unusable and len(set(ref.unusable)) >= 2
+    np.testing.assert_allclose(cc.covariance, ref.covariance, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(cc.shared_px2, ref.shared_px2, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(cc.alternating_px2, ref.alternating_px2, rtol=1e-12, atol=1e-18)
+    np.testing.assert_allclose(cc.light_gradient, ref.light_gradient, rtol=1e-12, atol=1e-18)
 
 
 def test_tracked_corners_have_covariances() -> None:

@@ -20,9 +20,12 @@ from edgecal.detection.probe import (
     EDGE_ACROSS_RAY,
     EDGE_MAGNITUDE,
     M_FIRST_SIGN,
+    probe_accepts,
     probe_candidates,
     probe_profile_reference,
     probe_profiles,
+    ring_prefilter,
+    ring_prefilter_radii,
 )
 from edgecal.errors import ConfigError, InputError
 from edgecal.scoring import FoundGrid, corner_rms, score_image
@@ -106,6 +109,26 @@ def test_probe_rejects_edges_l_corners_and_flat_areas() -> None:
         ok, _d, _m = probe_candidates(gx, gy, smooth, np.array([[20.0, 20.0]]), np.array([10.0]), 64, 1.5,
                                       EDGE_ACROSS_RAY, math.radians(30), 0.7, 12.0, 1.6)
         assert not ok[0], name
+
+
+def test_probe_and_prefilter_over_radii_match_one_call_per_radius() -> None:
+    """probe_accepts and ring_prefilter_radii (the first pass, one call) accept exactly the points that
+    probe_candidates and ring_prefilter accept at one of the radii, called once per radius: on the
+    candidates of a rendered board with clutter, some accepted only at the third radius."""
+    view = planar_view(8, photometric="normal")
+    smooth, gx, gy = prepare_image(view.image)
+    rng = np.random.default_rng(4)
+    h, w = smooth.shape
+    pts = np.concatenate([view.corners(0), rng.uniform([0, 0], [w - 1, h - 1], (300, 2)),
+                          view.corners(0) + rng.normal(0.0, 1.5, (len(view.corners(0)), 2))])
+    radii = np.array([10.0, 5.0, 20.0])
+    args = (32, 1.5, EDGE_ACROSS_RAY, math.radians(30), 0.7, 12.0, 1.6)
+    per_radius = [probe_candidates(gx, gy, smooth, pts, np.full(len(pts), r), *args)[0] for r in radii]
+    assert (np.any(per_radius[1:], axis=0) & ~per_radius[0]).any()
+    np.testing.assert_array_equal(probe_accepts(gx, gy, smooth, pts, radii, *args), np.any(per_radius, axis=0))
+    rings = [ring_prefilter(smooth, pts, np.full(len(pts), r), 12.0) for r in radii]
+    assert (np.any(rings[1:], axis=0) & ~rings[0]).any()
+    np.testing.assert_array_equal(ring_prefilter_radii(smooth, pts, radii, 12.0), np.any(rings, axis=0))
 
 
 # --- Eq. (6)-(8): grouping and the cross-ratio ---------------------------------------------------------

@@ -44,6 +44,7 @@ corners.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -637,11 +638,18 @@ def _saddle_statistics(smooth: np.ndarray, corners: np.ndarray, blur: np.ndarray
 
 def noise_kernel(smoothing_sigma: float) -> np.ndarray:
     """The detector's 1-D Gaussian (candidates.smooth_image), float64: how one raw pixel's noise reaches the
-    smoothed image."""
+    smoothed image (read-only: one array per sigma, made once)."""
+    return _noise_kernel(float(smoothing_sigma))
+
+
+@lru_cache(maxsize=64)
+def _noise_kernel(smoothing_sigma: float) -> np.ndarray:
     import cv2
 
     ksize = 2 * int(np.ceil(2.5 * smoothing_sigma)) + 1
-    return cv2.getGaussianKernel(ksize, smoothing_sigma, cv2.CV_64F).ravel()
+    kernel = cv2.getGaussianKernel(ksize, smoothing_sigma, cv2.CV_64F).ravel()
+    kernel.setflags(write=False)
+    return kernel
 
 
 class CornerCovariances(NamedTuple):
@@ -694,6 +702,28 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         return CornerCovariances(np.zeros((0, 2, 2)), np.zeros(0), [], np.zeros((0, 2)), np.zeros(0))
     if spacing is None:
         spacing = nearest_spacing(corners)
+    st, sd, half = corner_statistics(smooth, smoothing_sigma, corners, spacing, refiner, steps)
+    noise2 = (covariance_noise_sigma(grey) if noise_sigma is None else noise_sigma) ** 2
+    xj = np.ones(n, dtype=np.bool_) if xjunction_fitted is None else \
+        np.ascontiguousarray(np.asarray(xjunction_fitted, dtype=np.bool_).reshape(n))
+    bend = np.zeros(n) if bend_px is None else np.ascontiguousarray(np.asarray(bend_px, dtype=np.float64).reshape(n))
+    board = np.zeros(n, dtype=np.int64) if boards is None else \
+        np.ascontiguousarray(np.asarray(boards, dtype=np.int64).reshape(n))
+    disc = xjunction_disc_radius(spacing) if refiner == "xjunction" else np.zeros(n)
+    fit_noise = np.full((n, 2, 2), np.nan) if xjunction_noise is None else \
+        np.ascontiguousarray(np.asarray(xjunction_noise, dtype=np.float64).reshape(n, 2, 2))
+    cov, shared, light, alternating, code = _covariances(
+        st, sd, half, np.ascontiguousarray(disc, dtype=np.float64), float(noise2),
+        REFINERS.index(refiner), boards is not None, board, xjunction_fitted is not None, xj, bend, fit_noise)
+    return CornerCovariances(cov, shared, [_REASONS[c] for c in code.tolist()], light, alternating)
+
+
+def corner_statistics(smooth: np.ndarray, smoothing_sigma: float, corners: np.ndarray, spacing: np.ndarray,
+                      refiner: str, steps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What corner_covariance computes its covariances from (its arguments of the same names; ``corners``
+    (N, 2) float64 contiguous): (window_statistics (N, N_STATS), saddle_statistics (N, N_SADDLE), zeros for
+    refiner "cornersubpix", the cornerSubPix windows' half-widths (N,))."""
+    n = len(corners)
     half = subpixel_window(spacing)
     smooth = np.ascontiguousarray(smooth, dtype=np.float32)
     gauss = noise_kernel(smoothing_sigma)
@@ -707,8 +737,25 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         # cornerSubPix's noise term only where the saddle fit gives no covariance
         st = window_statistics(smooth, corners, half, gauss, ~(sd[:, S_OK] > 0))
     else:
+        sd = np.zeros((n, N_SADDLE))
         st = window_statistics(smooth, corners, half, gauss, np.ones(n, dtype=np.bool_))
-    noise2 = (covariance_noise_sigma(grey) if noise_sigma is None else noise_sigma) ** 2
+    return st, sd, half
+
+
+# Unusable reasons by the code _covariances returns (0: usable).
+_REASONS = ("", REASON_BORDER, REASON_FLAT, REASON_DEGENERATE, REASON_DISAGREE, REASON_NO_FIT)
+# SHARED_FRACTION for the kernel (numba reads no dicts)
+_SHARED_CORNERSUBPIX = SHARED_FRACTION["cornersubpix"]
+_SHARED_SADDLE = SHARED_FRACTION["saddle"]
+
+
+def covariances_reference(st: np.ndarray, sd: np.ndarray, half: np.ndarray, spacing: np.ndarray, noise2: float,
+                          refiner: str, boards: np.ndarray | None = None, xjunction_fitted: np.ndarray | None = None,
+                          bend_px: np.ndarray | None = None, xjunction_noise: np.ndarray | None = None
+                          ) -> CornerCovariances:
+    """corner_covariance from the window and saddle statistics (``st`` (N, N_STATS), ``sd`` (N, N_SADDLE)),
+    in numpy: the reference the one-pass kernel (_covariances) is tested against."""
+    n = len(st)
     a = st[:, W_AXX] * st[:, W_AYY] - st[:, W_AXY] ** 2
     tr = st[:, W_AXX] + st[:, W_AYY]
     inside_window = st[:, W_INSIDE] > 0
@@ -718,7 +765,6 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     alternating = np.zeros(n)
     if refiner in ("saddle", "xjunction"):
         fitted = (sd[:, S_OK] > 0) & inside_window
-        # the corners the X-junction fit placed (all by default)
         xj = np.ones(n, dtype=bool) if xjunction_fitted is None else np.asarray(xjunction_fitted, bool).reshape(n)
         if boards is not None:
             sd = _board_light(sd, np.asarray(boards, dtype=np.int64).reshape(n))
@@ -726,7 +772,6 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         light = np.zeros((n, 2))
         light[read] = sd[read][:, [S_LIGHTX, S_LIGHTY]] / sd[read, S_LEVEL, None]
         if refiner == "xjunction":
-            # |grad log L|^2 less what the noise of its reading puts in it (the board mean's, _board_light)
             g2 = np.zeros(n)
             g2[read] = np.maximum(np.sum(light[read] ** 2, axis=1)
                                   - noise2 * (sd[read, S_LNXX] + sd[read, S_LNYY]) / sd[read, S_LEVEL] ** 2, 0.0)
@@ -742,16 +787,10 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
         else:
             cov[fitted] = _saddle_covariance(sd[fitted], noise2)
         shared_fraction[fitted] = SHARED_FRACTION["saddle"]
-        # the shift all of a board's corners share along the light gradient (LIGHT_SHIFT_PX2), isotropic: what
-        # a corner's error adds to it has no preferred direction (along the gradient, the covariances were
-        # 1.5x too elongated for the errors under uneven light)
         shift2 = LIGHT_SHIFT_PX2 ** 2 * np.sum(light[read] ** 2, axis=1)
         cov[read] += 0.5 * shift2[:, None, None] * np.eye(2)
         ok |= fitted
         disagree = fitted & (np.hypot(sd[:, S_STEPX], sd[:, S_STEPY]) > MAX_SADDLE_STEP_PX)
-        # only cornerSubPix's position is left, and where the fits see no corner it is often on an edge: a
-        # fisheye board's outer corner 7.7 px off on bench/calibrate's renders, sigma 0.8 px (the one such
-        # corner of 7244); on ocamcalib_urban_fisheye1 6 of 717 corners, sigma 1.4-21 px
         unfitted = inside_window & ~fitted
         if refiner == "xjunction" and xjunction_fitted is not None:
             unfitted &= ~xj
@@ -770,6 +809,202 @@ def corner_covariance(grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: flo
     light[reasons != ""] = 0.0
     alternating[reasons != ""] = np.nan
     return CornerCovariances(cov, shared, reasons.tolist(), light, alternating)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _inverse_2x2(a: float, b: float, c: float, d: float) -> tuple[float, float, float, float]:
+    """The inverse of [[a, b], [c, d]] (row-major)."""
+    det = a * d - b * c
+    return d / det, -b / det, -c / det, a / det
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sandwich(s: float, m00: float, m01: float, m10: float, m11: float, n00: float, n01: float, n11: float
+              ) -> tuple[float, float, float, float]:
+    """(s M) N M for a 2x2 M (row-major) and a symmetric N (its upper half), in numpy's order of
+    ``s * m @ n @ m``."""
+    l00 = s * m00
+    l01 = s * m01
+    l10 = s * m10
+    l11 = s * m11
+    t00 = l00 * n00 + l01 * n01
+    t01 = l00 * n01 + l01 * n11
+    t10 = l10 * n00 + l11 * n01
+    t11 = l10 * n01 + l11 * n11
+    return t00 * m00 + t01 * m10, t00 * m01 + t01 * m11, t10 * m00 + t11 * m10, t10 * m01 + t11 * m11
+
+
+@njit(cache=True, nogil=True)
+def _covariances(st: np.ndarray, sd: np.ndarray, half: np.ndarray, disc: np.ndarray, noise2: float,
+                 refiner: int, by_board: bool, boards: np.ndarray, xj_given: bool, xj: np.ndarray,
+                 bend: np.ndarray, fit_noise: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """corner_covariance's covariances from the window and saddle statistics in one pass over the corners:
+    (covariance (N, 2, 2), shared_px2 (N,), light_gradient (N, 2), alternating_px2 (N,), reason codes (N,)
+    int64, _REASONS). ``disc`` (N,): xjunction_disc_radius; ``refiner``: index in REFINERS (0 cornerSubPix:
+    ``sd`` unused); ``by_board``: average
+    the light field over each board of ``boards`` (N,) (_board_light); ``xj_given``: ``xj`` (N,) says which
+    corners the X-junction fit placed (else all); ``bend`` (N,) px; ``fit_noise`` (N, 2, 2) the X-junction
+    fit's covariance per unit noise variance (NaN: the saddle fit's term scaled). The same formulas, in the same order,
+    as covariances_reference (whose dozens of small array operations cost ~10x this)."""
+    n = st.shape[0]
+    cov = np.empty((n, 2, 2))
+    shared = np.empty(n)
+    light = np.zeros((n, 2))
+    alternating = np.zeros(n)
+    code = np.zeros(n, dtype=np.int64)
+    fits = refiner != 0
+    # the light field per board (_board_light): the boards' mean gradient of log light and its noise
+    lx_col = np.empty(n)
+    ly_col = np.empty(n)
+    ln_col = np.empty((n, 3))
+    for i in range(n):
+        if fits:
+            lx_col[i] = sd[i, S_LIGHTX]
+            ly_col[i] = sd[i, S_LIGHTY]
+            ln_col[i, 0] = sd[i, S_LNXX]
+            ln_col[i, 1] = sd[i, S_LNXY]
+            ln_col[i, 2] = sd[i, S_LNYY]
+    if fits and by_board:
+        k = 0
+        for i in range(n):
+            k = max(k, boards[i] + 1)
+        count = np.zeros(k, dtype=np.int64)
+        sums = np.zeros((k, 2))
+        vsum = np.zeros((k, 3))
+        any_read = False
+        for i in range(n):
+            level = sd[i, S_LEVEL]
+            if sd[i, S_OK] > 0 and abs(level) > 1.0 and (sd[i, S_LIGHTX] != 0 or sd[i, S_LIGHTY] != 0):
+                any_read = True
+                b = boards[i]
+                count[b] += 1
+                sums[b, 0] += sd[i, S_LIGHTX] / level
+                sums[b, 1] += sd[i, S_LIGHTY] / level
+                vsum[b, 0] += sd[i, S_LNXX] / level ** 2
+                vsum[b, 1] += sd[i, S_LNXY] / level ** 2
+                vsum[b, 2] += sd[i, S_LNYY] / level ** 2
+        if any_read:
+            for i in range(n):
+                b = boards[i]
+                level = sd[i, S_LEVEL]
+                c = max(count[b], 1)
+                lx_col[i] = level * (sums[b, 0] / c)
+                ly_col[i] = level * (sums[b, 1] / c)
+                for j in range(3):
+                    ln_col[i, j] = level ** 2 * vsum[b, j] / c ** 2
+    for i in range(n):
+        axx = st[i, W_AXX]
+        axy = st[i, W_AXY]
+        ayy = st[i, W_AYY]
+        a = axx * ayy - axy ** 2
+        tr = axx + ayy
+        inside = st[i, W_INSIDE] > 0
+        ok = inside and tr > 0 and a > tr * tr / MAX_CONDITION
+        # cornerSubPix's covariance (_cornersubpix_covariance)
+        det = a if ok else 1.0
+        ai00 = st[i, W_AYY] / det
+        ai01 = -st[i, W_AXY] / det
+        ai11 = st[i, W_AXX] / det
+        c00, c01, c10, c11 = _sandwich(noise2, ai00, ai01, ai01, ai11, st[i, W_BXX], st[i, W_BXY], st[i, W_BYY])
+        contrast = max(st[i, W_CONTRAST], 1e-6)
+        asymmetry = math.hypot(st[i, W_MX], st[i, W_MY]) / contrast * half[i]
+        model2 = CORNERSUBPIX_FLOOR_PX ** 2 + (ASYMMETRY_GAIN * asymmetry) ** 2
+        g = model2 * 0.5 * tr
+        c00 += g * ai00
+        c01 += g * ai01
+        c10 += g * ai01
+        c11 += g * ai11
+        sf = _SHARED_CORNERSUBPIX
+        alt = 0.0
+        disagree = False
+        unfitted = False
+        lx = 0.0
+        ly = 0.0
+        if fits:
+            fitted = sd[i, S_OK] > 0 and inside
+            level = sd[i, S_LEVEL]
+            read = fitted and abs(level) > 1.0
+            if read:
+                lx = lx_col[i] / level
+                ly = ly_col[i] / level
+            if fitted:
+                hi00, hi01, hi10, hi11 = _inverse_2x2(sd[i, S_HXX], sd[i, S_HXY], sd[i, S_HXY], sd[i, S_HYY])
+                # saddle_noise_term: H^-1 N H^-1 noise2
+                q00, q01, q10, q11 = _sandwich(noise2, hi00, hi01, hi10, hi11, sd[i, S_NXX], sd[i, S_NXY],
+                                               sd[i, S_NYY])
+                tan = math.tan(sd[i, S_AXIS_ANGLE])
+                locking = math.exp(-2.0 * math.pi ** 2 * (PIXEL_LOCK_LENGTH_PX * tan) ** 2)
+                if refiner == 2 and xj[i]:
+                    g2 = 0.0
+                    if read:
+                        g2 = max(lx ** 2 + ly ** 2 - noise2 * (ln_col[i, 0] + ln_col[i, 2]) / level ** 2, 0.0)
+                    light_px = XJUNCTION_LIGHT_PX * disc[i] * math.sqrt(g2)
+                    alt = light_px ** 2
+                    m2 = (XJUNCTION_FLOOR_PX ** 2 + (XJUNCTION_LOCK_SHARE * PIXEL_LOCK_PX) ** 2 * locking
+                          + light_px ** 2 + (BEND_ERROR_SHARE * bend[i]) ** 2)
+                    f = fit_noise[i]
+                    if np.isfinite(f[0, 0]) and np.isfinite(f[0, 1]) and np.isfinite(f[1, 1]):
+                        c00 = noise2 * f[0, 0] + m2
+                        c01 = noise2 * f[0, 1]
+                        c10 = noise2 * f[1, 0]
+                        c11 = noise2 * f[1, 1] + m2
+                    else:
+                        c00 = XJUNCTION_NOISE_SHARE * q00 + m2
+                        c01 = XJUNCTION_NOISE_SHARE * q01
+                        c10 = XJUNCTION_NOISE_SHARE * q10
+                        c11 = XJUNCTION_NOISE_SHARE * q11 + m2
+                else:
+                    # _saddle_covariance: the light's bias H^-1 m and the probe's own noise on it
+                    b0 = hi00 * lx_col[i] + hi01 * ly_col[i]
+                    b1 = hi10 * lx_col[i] + hi11 * ly_col[i]
+                    p00, _p01, _p10, p11 = _sandwich(1.0, hi00, hi01, hi10, hi11, ln_col[i, 0], ln_col[i, 1],
+                                                     ln_col[i, 2])
+                    probe_noise = noise2 * (p00 + p11)
+                    bias2 = max(b0 ** 2 + b1 ** 2 - PROBE_NOISE_SHARE * probe_noise, 0.0)
+                    m2 = (SADDLE_FLOOR_PX ** 2 + PIXEL_LOCK_PX ** 2 * locking + 0.5 * bias2
+                          + 0.5 * (sd[i, S_STEPX] ** 2 + sd[i, S_STEPY] ** 2))
+                    c00 = q00 + m2
+                    c01 = q01
+                    c10 = q10
+                    c11 = q11 + m2
+                sf = _SHARED_SADDLE
+            if read:
+                shift2 = LIGHT_SHIFT_PX2 ** 2 * (lx ** 2 + ly ** 2)
+                c00 += 0.5 * shift2
+                c11 += 0.5 * shift2
+            ok = ok or fitted
+            disagree = fitted and math.hypot(sd[i, S_STEPX], sd[i, S_STEPY]) > MAX_SADDLE_STEP_PX
+            unfitted = inside and not fitted
+            if refiner == 2 and xj_given:
+                unfitted = unfitted and not xj[i]
+        off = 0.5 * (c01 + c10)
+        ev_min = 0.5 * (c00 + c11) - math.hypot(0.5 * (c00 - c11), off)
+        finite = math.isfinite(c00) and math.isfinite(off) and math.isfinite(c11)
+        if not inside:
+            code[i] = 1
+        elif tr <= 0:
+            code[i] = 2
+        elif not (ok and finite and ev_min > 0):
+            code[i] = 3
+        elif disagree:
+            code[i] = 4
+        elif unfitted:
+            code[i] = 5
+        if code[i]:
+            cov[i, 0, 0] = cov[i, 0, 1] = cov[i, 1, 0] = cov[i, 1, 1] = np.nan
+            shared[i] = np.nan
+            alternating[i] = np.nan
+            continue
+        cov[i, 0, 0] = c00
+        cov[i, 0, 1] = off
+        cov[i, 1, 0] = off
+        cov[i, 1, 1] = c11
+        shared[i] = sf ** 2 * (0.5 * (c00 + c11) - alt)
+        light[i, 0] = lx
+        light[i, 1] = ly
+        alternating[i] = alt
+    return cov, shared, light, alternating, code
 
 
 def without_light_shift(covariance: np.ndarray, light_gradient: np.ndarray | None,
@@ -916,6 +1151,41 @@ def grid_steps(ids: np.ndarray, corners: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True, nogil=True)
+def _grid_steps_of_boards(ids: np.ndarray, corners: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """grid_steps of several boards in one pass: corners bounds[b]:bounds[b + 1] of ``ids`` (N, 2) int64 and
+    ``corners`` (N, 2) are board b's. The same differences, per coordinate, as grid_steps."""
+    n = ids.shape[0]
+    out = np.full((n, 2, 2), np.nan)
+    for b in range(bounds.shape[0] - 1):
+        s, e = bounds[b], bounds[b + 1]
+        if e <= s:
+            continue
+        lo_c, lo_r = ids[s, 0], ids[s, 1]
+        hi_c, hi_r = lo_c, lo_r
+        for i in range(s, e):
+            lo_c = min(lo_c, ids[i, 0])
+            lo_r = min(lo_r, ids[i, 1])
+            hi_c = max(hi_c, ids[i, 0])
+            hi_r = max(hi_r, ids[i, 1])
+        grid = np.full((hi_r - lo_r + 3, hi_c - lo_c + 3, 2), np.nan)
+        for i in range(s, e):
+            grid[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 0] = corners[i, 0]
+            grid[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 1] = corners[i, 1]
+        for i in range(s, e):
+            c = ids[i, 0] - lo_c + 1
+            r = ids[i, 1] - lo_r + 1
+            for k in range(2):
+                dc = 1 - k
+                dr = k
+                for j in range(2):
+                    ahead = grid[r + dr, c + dc, j] - corners[i, j]
+                    behind = corners[i, j] - grid[r - dr, c - dc, j]
+                    both = 0.5 * (ahead + behind)
+                    out[i, k, j] = both if math.isfinite(both) else (ahead if math.isfinite(ahead) else behind)
+    return out
+
+
 def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float,
                     noise_sigma: float, refiner: str, origin: np.ndarray | None = None,
                     spacing: list[np.ndarray] | None = None) -> None:
@@ -927,10 +1197,13 @@ def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth:
     if not detections:
         return
     origin = np.zeros(2) if origin is None else np.asarray(origin, dtype=np.float64)
-    xy = np.concatenate([d.corners for d in detections]) - origin
+    corners = np.concatenate([d.corners for d in detections]).astype(np.float64)
+    xy = corners - origin
     windows = np.concatenate(spacing if spacing is not None else [nearest_spacing(d.corners) for d in detections])
-    steps = np.concatenate([grid_steps(d.ids, d.corners) for d in detections])
-    boards = np.concatenate([np.full(len(d.corners), k) for k, d in enumerate(detections)])
+    counts = [len(d.corners) for d in detections]
+    steps = _grid_steps_of_boards(np.concatenate([d.ids for d in detections]).astype(np.int64), corners,
+                                  np.cumsum([0, *counts]).astype(np.int64))
+    boards = np.repeat(np.arange(len(detections)), counts)
     placed = [np.ones(len(d.corners), bool) if d.xjunction_fitted is None else d.xjunction_fitted for d in detections]
     bend = [np.zeros(len(d.corners)) if d.bend_px is None else d.bend_px for d in detections]
     fit_noise = [np.full((len(d.corners), 2, 2), np.nan) if d.xjunction_noise is None else d.xjunction_noise

@@ -34,7 +34,14 @@ from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
 from edgecal.detection.ordering import assign_ids, grid_is_regular
 from edgecal.detection.params import DetectorParams
-from edgecal.detection.probe import EDGE_ACROSS_RAY, probe_candidates, probe_quality, probe_radii, ring_prefilter
+from edgecal.detection.probe import (
+    EDGE_ACROSS_RAY,
+    probe_accepts,
+    probe_candidates,
+    probe_quality,
+    probe_radii,
+    ring_prefilter_radii,
+)
 from edgecal.detection.subpixel import SEARCH_CRITERIA, nearest_spacing, refine_corners
 from edgecal.detection.target_boards import (
     all_boards_found,
@@ -97,22 +104,15 @@ def _first_pass(level: Level, cands: np.ndarray, p: DetectorParams) -> np.ndarra
     thresholds = chess_thresholds(CHESS_RADII_PX, level.noise_sigma, level.smoothing_sigma,
                                   p.candidate_chess_quantile, p.candidate_chess_min)
     pts = pts[chess_filter(smooth, pts, _CHESS_RINGS, thresholds)]
-    keep = np.zeros(len(pts), dtype=bool)
-    for radius in radii:
-        todo = np.nonzero(~keep)[0]  # a point one radius keeps needs no other
-        keep[todo] = ring_prefilter(smooth, pts[todo], np.full(len(todo), radius), p.min_contrast)
-    pts = pts[keep]
+    # each point tried at the radii in turn (one that keeps it needs no other), all points in one call
+    radii_seq = np.array(radii)
+    pts = pts[ring_prefilter_radii(smooth, np.ascontiguousarray(pts, np.float64), radii_seq, p.min_contrast)]
     if len(pts) == 0:
         return pts
-    accepted = np.zeros(len(pts), dtype=bool)
-    for radius in radii:
-        todo = np.nonzero(~accepted)[0]
-        if len(todo) == 0:
-            break
-        # Half the rays suffice to accept or reject; the directions used later come from the second pass.
-        ok, _d, _m = _probe(smooth, gx, gy, pts[todo], np.full(len(todo), radius), p,
-                            max(16, p.probe_angles // 2))
-        accepted[todo[ok]] = True
+    # Half the rays suffice to accept or reject; the directions used later come from the second pass.
+    accepted = probe_accepts(gx, gy, smooth, np.ascontiguousarray(pts, np.float64), radii_seq,
+                             max(16, p.probe_angles // 2), p.probe_inner_radius_px, EDGE_ACROSS_RAY,
+                             math.radians(p.angle_diff_max_deg), p.sign_fraction, p.min_contrast, p.min_peak_ratio)
     return pts[accepted]
 
 

@@ -126,14 +126,32 @@ def bend_shift(xy: np.ndarray, ids: np.ndarray, angles: np.ndarray, radius: np.n
     and column there ``angles`` (N, 2) radians (subpixel.grid_line_angles) and the fit's disc radii ``radius``
     (N,) px. A line with fewer than three corners (no curvature known) counts as straight; where the two
     lines are too close to parallel to intersect well the shift is 0."""
-    angles = np.asarray(angles, dtype=np.float64).reshape(-1, 2)
-    curvatures = line_curvatures(xy, ids)
-    normals = np.stack([-np.sin(angles), np.cos(angles)], axis=-1)                  # (N, 2 lines, 2)
-    offset = np.sum(normals * curvatures, axis=-1) * BEND_SHIFT_SHARE * np.asarray(radius, np.float64)[:, None] ** 2
-    offset = np.where(np.isfinite(offset), offset, 0.0)
-    det = normals[:, 0, 0] * normals[:, 1, 1] - normals[:, 0, 1] * normals[:, 1, 0]
-    ok = np.abs(det) > 0.1                    # the lines meet at more than ~6 deg
-    safe = np.where(ok, det, 1.0)
-    shift = np.stack([(offset[:, 0] * normals[:, 1, 1] - offset[:, 1] * normals[:, 0, 1]) / safe,
-                      (normals[:, 0, 0] * offset[:, 1] - normals[:, 1, 0] * offset[:, 0]) / safe], axis=1)
-    return np.where(ok[:, None], shift, 0.0)
+    angles = np.ascontiguousarray(np.asarray(angles, dtype=np.float64).reshape(-1, 2))
+    radius = np.ascontiguousarray(np.asarray(radius, dtype=np.float64).reshape(-1))
+    return _shift_from_curvatures(line_curvatures(xy, ids), angles, radius)
+
+
+@njit(cache=True, nogil=True)
+def _shift_from_curvatures(curvatures: np.ndarray, angles: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """bend_shift from the lines' curvature vectors (N, 2, 2), directions (N, 2) and disc radii (N,), per
+    corner (the numpy expressions it replaced, in their order): each line's offset n . kappa x
+    BEND_SHIFT_SHARE x r^2 (0 where unknown), the two lines' intersection moved by them."""
+    n = curvatures.shape[0]
+    out = np.zeros((n, 2))
+    for i in range(n):
+        n00 = -math.sin(angles[i, 0])
+        n01 = math.cos(angles[i, 0])
+        n10 = -math.sin(angles[i, 1])
+        n11 = math.cos(angles[i, 1])
+        r2 = radius[i] ** 2
+        o0 = (n00 * curvatures[i, 0, 0] + n01 * curvatures[i, 0, 1]) * BEND_SHIFT_SHARE * r2
+        o1 = (n10 * curvatures[i, 1, 0] + n11 * curvatures[i, 1, 1]) * BEND_SHIFT_SHARE * r2
+        if not math.isfinite(o0):
+            o0 = 0.0
+        if not math.isfinite(o1):
+            o1 = 0.0
+        det = n00 * n11 - n01 * n10
+        if abs(det) > 0.1:                    # the lines meet at more than ~6 deg
+            out[i, 0] = (o0 * n11 - o1 * n01) / det
+            out[i, 1] = (n00 * o1 - n10 * o0) / det
+    return out

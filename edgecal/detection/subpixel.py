@@ -364,15 +364,18 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
     start = np.array(pts, dtype=np.float32).reshape(-1, 2)
     if len(start) == 0:
         return start.astype(np.float64)
-    spacing = np.ascontiguousarray(np.broadcast_to(np.asarray(spacing, np.float64), (len(start),)))
+    spacing = np.asarray(spacing, np.float64)
+    # (np.broadcast_to only where needed: it costs more than the small calls' bookkeeping it serves)
+    spacing = np.ascontiguousarray(spacing.reshape(-1) if spacing.size == len(start) and spacing.ndim <= 1
+                                   else np.broadcast_to(spacing, (len(start),)))
     h, w = smooth.shape
-    order, sizes = _refinement_plan(start, spacing, h, w)
+    order, sizes, bounds = _refinement_plan(start, spacing, h, w)
     if len(order) == 0:
         return start.astype(np.float64)
     block = start[order].reshape(-1, 1, 2)
-    # one call per run of equal sizes (plain lists: np.r_ cost more than a small call's refinement)
-    bounds = [0, *(np.flatnonzero(sizes[1:] != sizes[:-1]) + 1).tolist(), len(order)]
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    # one call per run of equal sizes
+    edges = bounds.tolist()
+    for a, b in zip(edges[:-1], edges[1:]):
         part = block[a:b]  # a contiguous view: cornerSubPix refines it in place
         size = int(sizes[a])
         cv2.cornerSubPix(smooth, part, (size, size), (-1, -1), criteria)
@@ -380,10 +383,12 @@ def refine_corners(smooth: np.ndarray, pts: np.ndarray, spacing: np.ndarray,
 
 
 @njit(cache=True, nogil=True)
-def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The points of ``start`` (M, 2) float32 whose cornerSubPix window (subpixel_window of ``spacing``
     (M,), of 6 px where a point or its spacing is not finite) lies inside an h x w image, sorted by window
-    half-width (stable): (their indices (K,), half-widths (K,))."""
+    half-width (stable): (their indices (K,), half-widths (K,), the bounds of the runs of one half-width
+    (R + 1,): run r is [bounds[r], bounds[r + 1]))."""
     m = start.shape[0]
     half = np.empty(m, np.int64)
     ok = np.zeros(m, np.bool_)
@@ -404,13 +409,23 @@ def _refinement_plan(start: np.ndarray, spacing: np.ndarray, h: int, w: int) -> 
     n = first[12] + count[12]
     order = np.empty(n, np.int64)
     sizes = np.empty(n, np.int64)
+    runs = 0
+    for hw in range(13):
+        runs += count[hw] > 0
+    bounds = np.empty(runs + 1, np.int64)
+    bounds[0] = 0
+    r = 1
+    for hw in range(13):
+        if count[hw] > 0:
+            bounds[r] = first[hw] + count[hw]
+            r += 1
     for i in range(m):
         if ok[i]:
             k = first[half[i]]
             order[k] = i
             sizes[k] = half[i]
             first[half[i]] += 1
-    return order, sizes
+    return order, sizes, bounds
 
 
 @njit(cache=True, nogil=True)
@@ -1010,20 +1025,48 @@ def grid_line_angles(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """(N, 2) the directions (radians, image axes) of a grid's row and column lines at each of its corners
     ``xy`` (N, 2) with ``ids`` (N, 2: col, row): from the neighbours on either side along the line (one side
     at a line's end; 0 and pi/2 where a corner has no neighbour along a line)."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    grid, lo = _dense_grid(xy, ids)
-    at = np.asarray(ids, dtype=np.int64).reshape(-1, 2) - lo
-    rows, cols = grid.shape[:2]
-    padded = np.full((rows + 2, cols + 2, 2), np.nan)
-    padded[1:-1, 1:-1] = grid
-    r, c = at[:, 1] + 1, at[:, 0] + 1
-    out = np.empty((len(xy), 2))
-    for k, (dr, dc) in enumerate(((0, 1), (1, 0))):
-        ahead, behind = padded[r + dr, c + dc], padded[r - dr, c - dc]
-        step = np.where(np.isfinite(ahead) & np.isfinite(behind), ahead - behind,
-                        np.where(np.isfinite(ahead), ahead - xy, xy - behind))
-        step = np.where(np.isfinite(step), step, [[1.0, 0.0], [0.0, 1.0]][k])
-        out[:, k] = np.arctan2(step[:, 1], step[:, 0])
+    xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    ids = np.ascontiguousarray(np.asarray(ids, dtype=np.int64).reshape(-1, 2))
+    if not len(xy):
+        return np.empty((0, 2))
+    return _grid_line_angles(xy, ids)
+
+
+@njit(cache=True, nogil=True)
+def _grid_line_angles(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """grid_line_angles in one pass (N >= 1 corners): per coordinate, the step between the neighbours ahead
+    and behind, else to the one there is, else the line's axis (as the numpy expressions it replaced)."""
+    n = xy.shape[0]
+    lo_c, lo_r = ids[0, 0], ids[0, 1]
+    hi_c, hi_r = lo_c, lo_r
+    for i in range(n):
+        lo_c = min(lo_c, ids[i, 0])
+        lo_r = min(lo_r, ids[i, 1])
+        hi_c = max(hi_c, ids[i, 0])
+        hi_r = max(hi_r, ids[i, 1])
+    padded = np.full((hi_r - lo_r + 3, hi_c - lo_c + 3, 2), np.nan)
+    for i in range(n):
+        padded[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 0] = xy[i, 0]
+        padded[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 1] = xy[i, 1]
+    out = np.empty((n, 2))
+    step = np.empty(2)
+    for i in range(n):
+        r = ids[i, 1] - lo_r + 1
+        c = ids[i, 0] - lo_c + 1
+        for k in range(2):
+            dr = k
+            dc = 1 - k
+            for j in range(2):
+                ahead = padded[r + dr, c + dc, j]
+                behind = padded[r - dr, c - dc, j]
+                if math.isfinite(ahead) and math.isfinite(behind):
+                    v = ahead - behind
+                elif math.isfinite(ahead):
+                    v = ahead - xy[i, j]
+                else:
+                    v = xy[i, j] - behind
+                step[j] = v if math.isfinite(v) else (1.0 if j == k else 0.0)
+            out[i, k] = math.atan2(step[1], step[0])
     return out
 
 
