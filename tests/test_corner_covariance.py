@@ -13,6 +13,7 @@ import pytest
 import edgecal
 from edgecal.detection.candidates import estimate_noise_sigma, smooth_image, smoothing_sigma
 from edgecal.detection.corner_covariance import (
+    BEND_ERROR_SHARE,
     REASON_BORDER,
     REASON_DEGENERATE,
     REASON_DISAGREE,
@@ -224,6 +225,10 @@ def test_covariance_kernel_matches_the_numpy_reference(refiner: str) -> None:
     np.testing.assert_allclose(cc.shared_px2, ref.shared_px2, rtol=1e-12, atol=1e-18)
     np.testing.assert_allclose(cc.alternating_px2, ref.alternating_px2, rtol=1e-12, atol=1e-18)
     np.testing.assert_allclose(cc.light_gradient, ref.light_gradient, rtol=1e-12, atol=1e-18)
+    if refiner == "xjunction":  # the lens-bend correction's error is all in the board's shared part
+        placed = fitted & (np.array(cc.unusable) == "") & (bend > 0)
+        assert placed.sum() > 10
+        assert np.all(cc.shared_px2[placed] >= (BEND_ERROR_SHARE * bend[placed]) ** 2)
 
 
 def test_tracked_corners_have_covariances() -> None:
