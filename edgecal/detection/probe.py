@@ -286,6 +286,14 @@ def _probe_point(gx: np.ndarray, gy: np.ndarray, grey: np.ndarray, x: float, y: 
 
 
 @njit(cache=True, nogil=True)
+def _probe_scratch(n_angles: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The probe's ray directions (cos, sin of n_angles angles) and its per-point scratch arrays (profile,
+    smoothed profile, sector signs, border directions), made once per call of a probe kernel."""
+    theta = np.arange(n_angles) * (2.0 * math.pi / n_angles)
+    return (np.cos(theta), np.sin(theta), np.empty(n_angles), np.empty(n_angles), np.empty(3), np.empty(4))
+
+
+@njit(cache=True, nogil=True)
 def probe_candidates(gx: np.ndarray, gy: np.ndarray, grey: np.ndarray, pts: np.ndarray, radii: np.ndarray,
                      n_angles: int, r_in: float, edge_mode: int, angle_diff_max: float,
                      sign_fraction: float, min_contrast: float, min_peak_ratio: float):
@@ -297,13 +305,7 @@ def probe_candidates(gx: np.ndarray, gy: np.ndarray, grey: np.ndarray, pts: np.n
     ok = np.zeros(m, dtype=np.bool_)
     dirs = np.zeros((m, 4))
     measures = np.zeros((m, N_MEASURES))
-    theta = np.arange(n_angles) * (2.0 * math.pi / n_angles)
-    cos_t = np.cos(theta)
-    sin_t = np.sin(theta)
-    profile = np.empty(n_angles)
-    smooth = np.empty(n_angles)
-    sign_out = np.empty(3)
-    d = np.empty(4)
+    cos_t, sin_t, profile, smooth, sign_out, d = _probe_scratch(n_angles)
     for i in range(m):
         x = pts[i, 0]
         y = pts[i, 1]
@@ -335,13 +337,7 @@ def probe_accepts(gx: np.ndarray, gy: np.ndarray, grey: np.ndarray, pts: np.ndar
     radius on the points left cost more in calls than the few points after the first radius)."""
     m = pts.shape[0]
     ok = np.zeros(m, dtype=np.bool_)
-    theta = np.arange(n_angles) * (2.0 * math.pi / n_angles)
-    cos_t = np.cos(theta)
-    sin_t = np.sin(theta)
-    profile = np.empty(n_angles)
-    smooth = np.empty(n_angles)
-    sign_out = np.empty(3)
-    d = np.empty(4)
+    cos_t, sin_t, profile, smooth, sign_out, d = _probe_scratch(n_angles)
     dirs = np.zeros((1, 4))
     measures = np.zeros((1, N_MEASURES))
     for i in range(m):
