@@ -526,9 +526,11 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         holes = np.argwhere(~np.isfinite(dense[2:-2, 2:-2, 0])) + (u0, v0)
         hole_p, hole_s = hole_predictions.predict(dense, lo, holes)
         found = np.isfinite(hole_p).all(axis=1) & np.isfinite(hole_s)
-        preds = list(hole_p[found])
-        keys = [(int(u), int(v)) for u, v in holes[found]]
-        spac = hole_s[found].tolist()
+        # (the labels as tuples of Python ints straight from .tolist(): per-element int() cost more than the
+        # refinement bookkeeping it fed)
+        preds = [hole_p[found]]
+        keys = list(map(tuple, holes[found].tolist()))
+        spac = [hole_s[found]]
         # Sides: a whole new row or column, each point extrapolated along its own grid line.
         sides = []
         if u1 - u0 + 1 < max_dim:
@@ -548,31 +550,32 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
                 start += len(labels)
                 if not len(on_side):
                     continue
-                preds.extend(side_p[on_side])
-                keys.extend((int(u), int(v)) for u, v in side_labels[on_side])
-                spac.extend(side_s[on_side].tolist())
+                preds.append(side_p[on_side])
+                keys.extend(map(tuple, side_labels[on_side].tolist()))
+                spac.append(side_s[on_side])
                 groups.append((len(keys), labels, outward))
         if not keys:
             break
         n_holes = groups[0][0]
-        refined, good = verified.verify(np.asarray(preds), np.asarray(spac), np.arange(len(keys)) < n_holes)
+        refined, good = verified.verify(np.concatenate(preds), np.concatenate(spac),
+                                        np.arange(len(keys)) < n_holes)
         start = 0
         for end, side, side_outward in groups:
-            sel = range(start, end)
+            # the confirmed points of this group, found once (not tested point by point in Python)
+            sel = (np.flatnonzero(good[start:end]) + start).tolist()
             start = end
             if side is not None and side_outward is not None:
                 # A side line is taken only when most of it is confirmed and squares lie beyond it.
-                if sum(good[i] for i in sel) < max(2, 0.6 * len(side)):
+                if len(sel) < max(2, 0.6 * len(side)):
                     continue
                 trial = dict(grid)
-                trial.update({keys[i]: refined[i] for i in sel if good[i]})
-                line = [keys[i] for i in sel if good[i]]
+                trial.update({keys[i]: refined[i] for i in sel})
+                line = [keys[i] for i in sel]
                 if not squares_beyond_alternate(trial, line, side_outward, smooth, params.min_contrast):
                     continue
             for i in sel:
-                if good[i]:
-                    grid[keys[i]] = refined[i]
-                    added = True
+                grid[keys[i]] = refined[i]
+            added = added or bool(sel)
         if not added:
             break
     return grid
