@@ -382,6 +382,34 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
 
 
 @njit(cache=True, nogil=True)
+def _side_labels(u0: int, v0: int, u1: int, v1: int, grow_u: bool, grow_v: bool) -> tuple[np.ndarray, np.ndarray]:
+    """complete_grid's new outer lines of the labels u0..u1 x v0..v1, side by side: labels (K, 2) and each
+    one's outward step (K, 2), int64. With ``grow_u`` the lines u0 - 1 and u1 + 1 (over v0..v1, outward -u
+    and +u), then with ``grow_v`` the lines v0 - 1 and v1 + 1 (over u0..u1, -v and +v)."""
+    nv = v1 - v0 + 1
+    nu = u1 - u0 + 1
+    k = (2 * nv if grow_u else 0) + (2 * nu if grow_v else 0)
+    labels = np.empty((k, 2), np.int64)
+    outward = np.zeros((k, 2), np.int64)
+    i = 0
+    if grow_u:
+        for u, du in ((u0 - 1, -1), (u1 + 1, 1)):
+            for v in range(v0, v1 + 1):
+                labels[i, 0] = u
+                labels[i, 1] = v
+                outward[i, 0] = du
+                i += 1
+    if grow_v:
+        for v, dv in ((v0 - 1, -1), (v1 + 1, 1)):
+            for u in range(u0, u1 + 1):
+                labels[i, 0] = u
+                labels[i, 1] = v
+                outward[i, 1] = dv
+                i += 1
+    return labels, outward
+
+
+@njit(cache=True, nogil=True)
 def _extrapolate(dense: np.ndarray, lo_u: int, lo_v: int, labels: np.ndarray, outward: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Predict new outer lines, each point one step ``outward`` (K, 2: du, dv per label) along its own
@@ -526,53 +554,53 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
         holes = np.argwhere(~np.isfinite(dense[2:-2, 2:-2, 0])) + (u0, v0)
         hole_p, hole_s = hole_predictions.predict(dense, lo, holes)
         found = np.isfinite(hole_p).all(axis=1) & np.isfinite(hole_s)
-        preds = list(hole_p[found])
-        keys = [(int(u), int(v)) for u, v in holes[found]]
-        spac = hole_s[found].tolist()
-        # Sides: a whole new row or column, each point extrapolated along its own grid line.
-        sides = []
-        if u1 - u0 + 1 < max_dim:
-            sides += [([(u0 - 1, v) for v in range(v0, v1 + 1)], (-1, 0)),
-                      ([(u1 + 1, v) for v in range(v0, v1 + 1)], (1, 0))]
-        if v1 - v0 + 1 < max_dim:
-            sides += [([(u, v0 - 1) for u in range(u0, u1 + 1)], (0, -1)),
-                      ([(u, v1 + 1) for u in range(u0, u1 + 1)], (0, 1))]
-        groups: list[tuple[int, list | None, tuple[int, int] | None]] = [(len(keys), None, None)]
+        # (the labels as tuples of Python ints straight from .tolist(): per-element int() cost more than the
+        # refinement bookkeeping it fed)
+        preds = [hole_p[found]]
+        keys = list(map(tuple, holes[found].tolist()))
+        spac = [hole_s[found]]
+        # Sides: a whole new row or column, each point extrapolated along its own grid line. (Each side as
+        # its length and outward step; its labels made in one numba pass, _side_labels.)
+        grow_u, grow_v = u1 - u0 + 1 < max_dim, v1 - v0 + 1 < max_dim
+        sides = ([(v1 - v0 + 1, (-1, 0)), (v1 - v0 + 1, (1, 0))] if grow_u else []) \
+            + ([(u1 - u0 + 1, (0, -1)), (u1 - u0 + 1, (0, 1))] if grow_v else [])
+        groups: list[tuple[int, int, tuple[int, int] | None]] = [(len(keys), 0, None)]
         if sides:
-            side_labels = np.array([uv for labels, _o in sides for uv in labels], dtype=np.int64)
-            side_out = np.array([o for labels, o in sides for _uv in labels], dtype=np.int64)
+            side_labels, side_out = _side_labels(u0, v0, u1, v1, grow_u, grow_v)
             side_p, side_s, side_ok = _extrapolate(dense, int(lo[0]), int(lo[1]), side_labels, side_out)
-            start = 0
-            for labels, outward in sides:
-                on_side = np.flatnonzero(side_ok[start:start + len(labels)]) + start
-                start += len(labels)
-                if not len(on_side):
+            # the extrapolated points of all sides at once, cut where each side's labels start
+            ok_at = np.flatnonzero(side_ok)
+            cuts = np.searchsorted(ok_at, np.cumsum([0] + [length for length, _o in sides])).tolist()
+            for k, (length, outward) in enumerate(sides):
+                if cuts[k] == cuts[k + 1]:
                     continue
-                preds.extend(side_p[on_side])
-                keys.extend((int(u), int(v)) for u, v in side_labels[on_side])
-                spac.extend(side_s[on_side].tolist())
-                groups.append((len(keys), labels, outward))
+                on_side = ok_at[cuts[k]:cuts[k + 1]]
+                preds.append(side_p[on_side])
+                keys.extend(map(tuple, side_labels[on_side].tolist()))
+                spac.append(side_s[on_side])
+                groups.append((len(keys), length, outward))
         if not keys:
             break
         n_holes = groups[0][0]
-        refined, good = verified.verify(np.asarray(preds), np.asarray(spac), np.arange(len(keys)) < n_holes)
+        refined, good = verified.verify(np.concatenate(preds), np.concatenate(spac),
+                                        np.arange(len(keys)) < n_holes)
         start = 0
-        for end, side, side_outward in groups:
-            sel = range(start, end)
+        for end, side_length, side_outward in groups:
+            # the confirmed points of this group, found once (not tested point by point in Python)
+            sel = (np.flatnonzero(good[start:end]) + start).tolist()
             start = end
-            if side is not None and side_outward is not None:
+            if side_outward is not None:
                 # A side line is taken only when most of it is confirmed and squares lie beyond it.
-                if sum(good[i] for i in sel) < max(2, 0.6 * len(side)):
+                if len(sel) < max(2, 0.6 * side_length):
                     continue
                 trial = dict(grid)
-                trial.update({keys[i]: refined[i] for i in sel if good[i]})
-                line = [keys[i] for i in sel if good[i]]
+                trial.update({keys[i]: refined[i] for i in sel})
+                line = [keys[i] for i in sel]
                 if not squares_beyond_alternate(trial, line, side_outward, smooth, params.min_contrast):
                     continue
             for i in sel:
-                if good[i]:
-                    grid[keys[i]] = refined[i]
-                    added = True
+                grid[keys[i]] = refined[i]
+            added = added or bool(sel)
         if not added:
             break
     return grid

@@ -182,6 +182,52 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
     return out, room
 
 
+@njit(cache=True, nogil=True)
+def _rim_layout(xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """refine_rim's setup in one pass (its numpy calls cost more than the rim check they fed): for corners
+    ``xy`` (N, 2) with ``ids`` (N, 2) int64 (col, row) and ``spacing`` (N,), the grid of _dense_grid, the
+    indices (K,) of the corners on the rim of the grid the ids span (on_board_rim), their (col, row) on
+    that grid (K, 2) and their cornerSubPix half-widths (K,) as floats (subpixel_window's values: a NaN
+    spacing gives the int64 that numpy's cast of NaN gives on x86, as there)."""
+    n = ids.shape[0]
+    if n == 0:
+        return (np.full((0, 0, 2), np.nan), np.zeros(0, np.int64), np.zeros((0, 2), np.int64), np.zeros(0))
+    lo0, lo1, hi0, hi1 = ids[0, 0], ids[0, 1], ids[0, 0], ids[0, 1]
+    for i in range(1, n):
+        lo0 = min(lo0, ids[i, 0])
+        lo1 = min(lo1, ids[i, 1])
+        hi0 = max(hi0, ids[i, 0])
+        hi1 = max(hi1, ids[i, 1])
+    grid = np.full((hi1 - lo1 + 1, hi0 - lo0 + 1, 2), np.nan)
+    rim = np.zeros(n, np.bool_)
+    k = 0
+    for i in range(n):
+        c = ids[i, 0]
+        r = ids[i, 1]
+        grid[r - lo1, c - lo0, 0] = xy[i, 0]
+        grid[r - lo1, c - lo0, 1] = xy[i, 1]
+        if c == lo0 or c == hi0 or r == lo1 or r == hi1:
+            rim[i] = True
+            k += 1
+    which = np.empty(k, np.int64)
+    at = np.empty((k, 2), np.int64)
+    half = np.empty(k)
+    j = 0
+    for i in range(n):
+        if rim[i]:
+            which[j] = i
+            at[j, 0] = ids[i, 0] - lo0
+            at[j, 1] = ids[i, 1] - lo1
+            s = spacing[i]
+            if math.isnan(s):
+                half[j] = -9223372036854775808.0
+            else:
+                half[j] = min(max(math.floor(0.5 * s), 3.0), 12.0)
+            j += 1
+    return grid, which, at, half
+
+
 def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray, every: bool = False
                ) -> tuple[np.ndarray, np.ndarray]:
     """A grid's refined corners ``xy`` (M, 2) with those on its rim whose full window reaches past the board's
@@ -205,14 +251,10 @@ def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.
     xy = np.array(xy, dtype=np.float64)
     window = np.array(spacing, dtype=np.float64)
     ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
-    rim = on_board_rim(ids)
-    if not rim.any():
+    grid, which, at, half = _rim_layout(xy, ids, window)
+    if not len(which):
         return xy, window
-    grid, lo = _dense_grid(xy, ids)
-    which = np.flatnonzero(rim)
-    at = np.ascontiguousarray(ids[which] - lo)
-    need, room = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at,
-                                      subpixel_window(window[which]).astype(np.float64))
+    need, room = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at, half)
     edge = need  # the board's edge seen within the window: these may be pulled beyond the rim window's reach
     if every:
         need = np.ones(len(which), dtype=bool)
@@ -449,7 +491,8 @@ def _kept_refinements(start: np.ndarray, block: np.ndarray, order: np.ndarray, s
 
 @njit(cache=True, nogil=True)
 def _nearest_distances(pts: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """Distance from each point (M, 2) to its nearest other one; ``order`` sorts the points by x.
+    """Distance from each point (M, 2) to its nearest other one, clipped to 4..300 px (nearest_spacing's
+    clip, here: two numpy calls cost more than the sweep); ``order`` sorts the points by x.
 
     A sweep along x from each point outwards that stops once the x gap alone exceeds the best distance:
     exact, and linear in practice for points spread over an image (a k-d tree costs ~40 us per call in
@@ -474,7 +517,8 @@ def _nearest_distances(pts: np.ndarray, order: np.ndarray) -> np.ndarray:
                 if d2 < b2:
                     b2 = d2
                 b += step
-        best[i] = math.sqrt(b2)
+        # (never NaN: a NaN point's comparisons all fail and leave it at inf, as np.maximum/np.minimum saw it)
+        best[i] = min(max(math.sqrt(b2), 4.0), 300.0)
     return best
 
 
@@ -531,7 +575,7 @@ def nearest_spacing(pts: np.ndarray) -> np.ndarray:
     pts = np.ascontiguousarray(pts, dtype=np.float64).reshape(-1, 2)
     if len(pts) < 2:
         return np.full(len(pts), 20.0)
-    return np.minimum(np.maximum(_nearest_distances(pts, np.argsort(pts[:, 0], kind="stable")), 4.0), 300.0)
+    return _nearest_distances(pts, np.argsort(pts[:, 0], kind="stable"))
 
 
 # The final refiners a detector can use (DetectorParams.subpixel_refiner): cornerSubPix alone, followed by the
@@ -1085,13 +1129,13 @@ def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) 
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     radius = xjunction_disc_radius(nearest_spacing(xy))
     ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
-    rim = np.flatnonzero(on_board_rim(ids))
+    # (the rim corners and the grid in one pass; its half-widths are for cornerSubPix windows, not used here)
+    grid, rim, at, _half = _rim_layout(xy, ids, radius)
     if not len(rim):
         return radius
-    grid, lo = _dense_grid(xy, ids)
     # a square window's reach: larger than the disc's along a diagonal (conservative for the disc)
-    reaches, room = _window_reaches_edge(np.ascontiguousarray(image_smooth, np.float32), grid,
-                                         np.ascontiguousarray(ids[rim] - lo), np.floor(radius[rim]))
+    reaches, room = _window_reaches_edge(np.ascontiguousarray(image_smooth, np.float32), grid, at,
+                                         np.floor(radius[rim]))
     radius[rim] = np.where(reaches, np.minimum(radius[rim], room), radius[rim])
     return radius
 

@@ -10,9 +10,9 @@ from edgecal.targets import Board, Target
 
 def grid_span(grid: dict[tuple[int, int], np.ndarray]) -> tuple[int, int]:
     """(cols, rows) the grid's labels span."""
-    uv = np.array(list(grid.keys()))
-    span = uv.max(axis=0) - uv.min(axis=0) + 1
-    return int(span[0]), int(span[1])
+    # in Python: the labels are tuples of ints, and an array made of them cost several times the min/max
+    us, vs = zip(*grid)
+    return int(max(us) - min(us) + 1), int(max(vs) - min(vs) + 1)
 
 
 def is_full_board(grid: dict[tuple[int, int], np.ndarray], by_size: dict[frozenset, list[Board]]) -> bool:
