@@ -392,19 +392,16 @@ def _side_labels(u0: int, v0: int, u1: int, v1: int, grow_u: bool, grow_v: bool)
     labels = np.empty((k, 2), np.int64)
     outward = np.zeros((k, 2), np.int64)
     i = 0
-    if grow_u:
-        for u, du in ((u0 - 1, -1), (u1 + 1, 1)):
-            for v in range(v0, v1 + 1):
-                labels[i, 0] = u
-                labels[i, 1] = v
-                outward[i, 0] = du
-                i += 1
-    if grow_v:
-        for v, dv in ((v0 - 1, -1), (v1 + 1, 1)):
-            for u in range(u0, u1 + 1):
-                labels[i, 0] = u
-                labels[i, 1] = v
-                outward[i, 1] = dv
+    for axis in range(2):  # 0: the new u lines (over v), 1: the new v lines (over u)
+        if not (grow_u if axis == 0 else grow_v):
+            continue
+        lo, hi = (u0, u1) if axis == 0 else (v0, v1)
+        first, last = (v0, v1) if axis == 0 else (u0, u1)
+        for line, step in ((lo - 1, -1), (hi + 1, 1)):
+            for t in range(first, last + 1):
+                labels[i, axis] = line
+                labels[i, 1 - axis] = t
+                outward[i, axis] = step
                 i += 1
     return labels, outward
 
