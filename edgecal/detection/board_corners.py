@@ -43,13 +43,13 @@ def final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: Detect
 
 def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(corners, fitted (N,) bool, bend_px (N,), noise (N, 2, 2)): an accepted board's corners ``xy`` (N, 2;
-    ``ids`` (N, 2):
-    col, row) from final_corners, moved by the X-junction fit on the raw image ``grey`` (refiner "xjunction";
-    unchanged otherwise), each in its disc (xjunction_radius on ``smooth``) from the grid's line directions
-    there, and less the fit's shift on a lens-bent grid (line_bend.bend_shift); ``fitted``: the corners it
-    placed (the others keep their start); ``bend_px``: the length of the shift taken off each (0 elsewhere);
-    ``noise``: the fit's covariance per unit image noise variance (xjunction_fit; NaN where not placed).
+    """(corners, fitted (N,) bool, bend_px (N,), noise (N, 2, 2)): an accepted board's corners ``xy``
+    (N, 2; ``ids`` (N, 2): col, row) from final_corners, moved by the X-junction fit on the raw image
+    ``grey`` (refiner "xjunction"; unchanged otherwise), each in its disc (xjunction_radius on ``smooth``)
+    from the grid's line directions there, and less the fit's shift on a lens-bent grid
+    (line_bend.bend_shift); ``fitted``: the corners it placed (the others keep their start); ``bend_px``:
+    the length of the shift taken off each (0 elsewhere); ``noise``: the fit's covariance per unit image
+    noise variance (xjunction_fit; NaN where not placed).
 
     Only the corners a detection reports: the checks that accept a board (its regularity, whether it is
     part of a larger grid) keep working on final_corners' corners, so the X-junction fit changes where
