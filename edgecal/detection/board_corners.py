@@ -57,12 +57,19 @@ def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np
     hundredths of a pixel let completion grow a board by a false line along the next face).
     """
     if p.subpixel_refiner != "xjunction" or not len(xy):
-        return xy, np.zeros(len(xy), dtype=bool), np.zeros(len(xy)), np.full((len(xy), 2, 2), np.nan)
+        return unpolished(xy)
     angles, radius = grid_line_angles(xy, ids), xjunction_radius(smooth, xy, ids)
     out, fitted, noise = xjunction_fit(grey, xy, angles, radius)
     # the fit's straight lines sit off a lens-bent grid's edges (line_bend): the corners it placed put back
     shift = fitted[:, None] * bend_shift(out, ids, angles, radius)
     return out - shift, fitted, np.hypot(shift[:, 0], shift[:, 1]), noise
+
+
+def unpolished(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """polish_corners' result for corners ``xy`` (N, 2) it leaves as they are: none fitted, no bend, no fit
+    noise (NaN)."""
+    n = len(xy)
+    return xy, np.zeros(n, dtype=bool), np.zeros(n), np.full((n, 2, 2), np.nan)
 
 
 def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p: DetectorParams) -> np.ndarray:

@@ -1198,8 +1198,8 @@ def _grid_steps_of_boards(ids: np.ndarray, corners: np.ndarray, bounds: np.ndarr
 
 
 def add_board_covariances(detections: list[Detection], grey: np.ndarray, smooth: np.ndarray, smoothing_sigma: float,
-                    noise_sigma: float, refiner: str, origin: np.ndarray | None = None,
-                    spacing: list[np.ndarray] | None = None) -> None:
+                          noise_sigma: float, refiner: str, origin: np.ndarray | None = None,
+                          spacing: list[np.ndarray] | None = None) -> None:
     """Fill in each detection's covariance, shared_px2, alternating_px2, light_gradient and unusable (one
     corner_covariance call for all): ``detections`` with corners in image pixels, refined by ``refiner`` on
     ``grey`` (a window of the image whose top-left pixel is ``origin``, default (0, 0)) and its ``smooth``

@@ -16,7 +16,7 @@ import math
 import cv2
 import numpy as np
 
-from edgecal.detection.board_corners import final_corners, polish_corners, resettle_slid_corners
+from edgecal.detection.board_corners import final_corners, polish_corners, resettle_slid_corners, unpolished
 from edgecal.detection.candidates import (
     chess_filter,
     chess_ring,
@@ -81,10 +81,14 @@ def _probe(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, pts: np.ndarray, 
            p: DetectorParams, n_angles: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """probe_candidates with the thresholds of ``p`` (``n_angles`` rays, default p.probe_angles)."""
     return probe_candidates(gx, gy, smooth, np.ascontiguousarray(pts, np.float64),
-                            np.ascontiguousarray(radii, np.float64), n_angles or p.probe_angles,
-                            p.probe_inner_radius_px,
-                            EDGE_ACROSS_RAY, math.radians(p.angle_diff_max_deg), p.sign_fraction,
-                            p.min_contrast, p.min_peak_ratio)
+                            np.ascontiguousarray(radii, np.float64), n_angles or p.probe_angles, *_probe_tests(p))
+
+
+def _probe_tests(p: DetectorParams) -> tuple[float, int, float, float, float, float]:
+    """The probe kernels' arguments after the rays (probe_candidates, probe_accepts) from ``p``: the rays'
+    inner radius, the edge mode and the thresholds of Eq. (3)-(5)."""
+    return (p.probe_inner_radius_px, EDGE_ACROSS_RAY, math.radians(p.angle_diff_max_deg), p.sign_fraction,
+            p.min_contrast, p.min_peak_ratio)
 
 
 def _first_pass(level: Level, cands: np.ndarray, p: DetectorParams) -> np.ndarray:
@@ -111,8 +115,7 @@ def _first_pass(level: Level, cands: np.ndarray, p: DetectorParams) -> np.ndarra
         return pts
     # Half the rays suffice to accept or reject; the directions used later come from the second pass.
     accepted = probe_accepts(gx, gy, smooth, np.ascontiguousarray(pts, np.float64), radii_seq,
-                             max(16, p.probe_angles // 2), p.probe_inner_radius_px, EDGE_ACROSS_RAY,
-                             math.radians(p.angle_diff_max_deg), p.sign_fraction, p.min_contrast, p.min_peak_ratio)
+                             max(16, p.probe_angles // 2), *_probe_tests(p))
     return pts[accepted]
 
 
@@ -387,9 +390,8 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
         if not grid_is_regular(xy, ids, board.cols, board.rows, 2 * p.cross_ratio_tolerance):
             notes.append(f"found a {board.cols}x{board.rows} grid that is not regular (rejected)")
             continue
-        fitted, bend, noise = np.zeros(len(xy), dtype=bool), np.zeros(len(xy)), np.full((len(xy), 2, 2), np.nan)
-        if not provisional:  # (a provisional board's corners are refined again at full resolution)
-            xy, fitted, bend, noise = polish_corners(level.grey, smooth, xy, ids, p)
+        # (a provisional board's corners are refined again at full resolution)
+        xy, fitted, bend, noise = unpolished(xy) if provisional else polish_corners(level.grey, smooth, xy, ids, p)
         order = np.lexsort((ids[:, 0], ids[:, 1]))
         quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows),

@@ -183,16 +183,13 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
 
 
 @njit(cache=True, nogil=True)
-def _rim_layout(xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """refine_rim's setup in one pass (its numpy calls cost more than the rim check they fed): for corners
-    ``xy`` (N, 2) with ``ids`` (N, 2) int64 (col, row) and ``spacing`` (N,), the grid of _dense_grid, the
-    indices (K,) of the corners on the rim of the grid the ids span (on_board_rim), their (col, row) on
-    that grid (K, 2) and their cornerSubPix half-widths (K,) as floats (subpixel_window's values: a NaN
-    spacing gives the int64 that numpy's cast of NaN gives on x86, as there)."""
+def _rim_layout(xy: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rim corners' setup in one pass (its numpy calls cost more than the rim check they fed): for
+    corners ``xy`` (N, 2) with ``ids`` (N, 2) int64 (col, row), the grid of _dense_grid, the indices (K,) of
+    the corners on the rim of the grid the ids span (on_board_rim) and their (col, row) on that grid (K, 2)."""
     n = ids.shape[0]
     if n == 0:
-        return (np.full((0, 0, 2), np.nan), np.zeros(0, np.int64), np.zeros((0, 2), np.int64), np.zeros(0))
+        return np.full((0, 0, 2), np.nan), np.zeros(0, np.int64), np.zeros((0, 2), np.int64)
     lo0, lo1, hi0, hi1 = ids[0, 0], ids[0, 1], ids[0, 0], ids[0, 1]
     for i in range(1, n):
         lo0 = min(lo0, ids[i, 0])
@@ -212,20 +209,14 @@ def _rim_layout(xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray
             k += 1
     which = np.empty(k, np.int64)
     at = np.empty((k, 2), np.int64)
-    half = np.empty(k)
     j = 0
     for i in range(n):
         if rim[i]:
             which[j] = i
             at[j, 0] = ids[i, 0] - lo0
             at[j, 1] = ids[i, 1] - lo1
-            s = spacing[i]
-            if math.isnan(s):
-                half[j] = -9223372036854775808.0
-            else:
-                half[j] = min(max(math.floor(0.5 * s), 3.0), 12.0)
             j += 1
-    return grid, which, at, half
+    return grid, which, at
 
 
 def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.ndarray, every: bool = False
@@ -251,10 +242,11 @@ def refine_rim(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, spacing: np.
     xy = np.array(xy, dtype=np.float64)
     window = np.array(spacing, dtype=np.float64)
     ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
-    grid, which, at, half = _rim_layout(xy, ids, window)
+    grid, which, at = _rim_layout(xy, ids)
     if not len(which):
         return xy, window
-    need, room = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at, half)
+    need, room = _window_reaches_edge(np.ascontiguousarray(smooth, np.float32), grid, at,
+                                      subpixel_window(window[which]).astype(np.float64))
     edge = need  # the board's edge seen within the window: these may be pulled beyond the rim window's reach
     if every:
         need = np.ones(len(which), dtype=bool)
@@ -1129,8 +1121,7 @@ def xjunction_radius(image_smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) 
     xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
     radius = xjunction_disc_radius(nearest_spacing(xy))
     ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
-    # (the rim corners and the grid in one pass; its half-widths are for cornerSubPix windows, not used here)
-    grid, rim, at, _half = _rim_layout(xy, ids, radius)
+    grid, rim, at = _rim_layout(xy, ids)  # the rim corners and the grid in one pass
     if not len(rim):
         return radius
     # a square window's reach: larger than the disc's along a diagonal (conservative for the disc)
