@@ -20,9 +20,11 @@ from edgecal.detection.probe import (
     M_ANGLE_ERR,
     M_CONTRAST,
     M_SIGN_FRAC,
+    N_MEASURES,
     probe_candidates,
     probe_quality,
     probe_radii,
+    ring_prefilter,
 )
 from edgecal.detection.subpixel import FINAL_CRITERIA, SEARCH_CRITERIA, nearest_of, refine_corners
 
@@ -366,15 +368,23 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
         preds = np.where(snap[:, None], accepted[np.maximum(j, 0)], preds)
     h, w = smooth.shape
     inside = ((preds[:, 0] > 2) & (preds[:, 1] > 2) & (preds[:, 0] < w - 3) & (preds[:, 1] < h - 3))
+    radii = probe_radii(spacing, params)
+    # A new outer line's prediction where no ring round it crosses dark/bright four times has no corner
+    # within reach of its refinement (most of them: the board's margin), so it is not refined or probed
+    # (a hole's prediction is pinned by neighbours all round: the probe alone decides there).
+    inside &= pinned | ring_prefilter(smooth, np.ascontiguousarray(preds, np.float64), radii,
+                                      0.5 * params.min_contrast, False)
     refined = preds.copy()
+    ok = np.zeros(len(preds), dtype=bool)
+    meas = np.zeros((len(preds), N_MEASURES))  # (quality 0 where not probed)
     if inside.any():
         sizes = spacing if window is None else window
         refined[inside] = refine_corners(smooth, preds[inside], sizes[inside], criteria=criteria)
-    radii = probe_radii(spacing, params)
-    ok, _dirs, meas = probe_candidates(
-        gx, gy, smooth, np.ascontiguousarray(refined), np.ascontiguousarray(radii), params.probe_angles,
-        params.probe_inner_radius_px, EDGE_ACROSS_RAY, math.radians(params.angle_diff_max_deg),
-        params.sign_fraction, params.min_contrast * 0.5, params.min_peak_ratio * 0.8)
+        ok[inside], _dirs, meas[inside] = probe_candidates(
+            gx, gy, smooth, np.ascontiguousarray(refined[inside]), np.ascontiguousarray(radii[inside]),
+            params.probe_angles, params.probe_inner_radius_px, EDGE_ACROSS_RAY,
+            math.radians(params.angle_diff_max_deg), params.sign_fraction, params.min_contrast * 0.5,
+            params.min_peak_ratio * 0.8)
     pinned_ok = ((meas[:, M_ANGLE_ERR] < math.radians(1.5 * params.angle_diff_max_deg))
                  & (meas[:, M_SIGN_FRAC] >= 0.6) & (meas[:, M_CONTRAST] >= 0.5 * params.min_contrast))
     near = np.linalg.norm(refined - preds, axis=1) < 0.25 * spacing

@@ -379,21 +379,24 @@ def probe_profile_reference(gx: np.ndarray, gy: np.ndarray, x: float, y: float, 
 
 
 @njit(cache=True, nogil=True)
-def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_contrast: float) -> np.ndarray:
+def ring_prefilter(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, min_contrast: float,
+                   symmetric: bool = True) -> np.ndarray:
     """A cheap first look before the full probe: does a ring around the point cross dark/bright 4 times?
 
     Samples 24 points on a circle (at 0.5 and 1.0 x ``radii``), classifies each against the ring's mean with
     a hysteresis of a quarter of ``min_contrast``, and keeps points where either ring alternates exactly four
-    times, spans at least ``min_contrast`` and is nearly point-symmetric (an X-corner looks the same turned
-    by 180 degrees, locally even under perspective; edges, L- and T-junctions do not). Saves the full
-    probe's cost on most non-corners.
+    times, spans at least ``min_contrast`` and (``symmetric``) is nearly point-symmetric (an X-corner looks
+    the same turned by 180 degrees, locally even under perspective; edges, L- and T-junctions do not). Saves
+    the full probe's cost on most non-corners. Without the symmetry test it also keeps a point a good part
+    of the ring's radius off an X-corner (a prediction its refinement would still pull in), as long as the
+    ring goes round the corner.
     """
     m = pts.shape[0]
     keep = np.zeros(m, dtype=np.bool_)
     vals = np.empty(_RING_SAMPLES)
     cos_t, sin_t = _ring_directions()
     for i in range(m):
-        keep[i] = _ring_keeps(grey, pts[i, 0], pts[i, 1], radii[i], min_contrast, cos_t, sin_t, vals)
+        keep[i] = _ring_keeps(grey, pts[i, 0], pts[i, 1], radii[i], min_contrast, cos_t, sin_t, vals, symmetric)
     return keep
 
 
@@ -407,7 +410,7 @@ def ring_prefilter_radii(grey: np.ndarray, pts: np.ndarray, radii: np.ndarray, m
     cos_t, sin_t = _ring_directions()
     for i in range(m):
         for radius in radii:
-            if _ring_keeps(grey, pts[i, 0], pts[i, 1], radius, min_contrast, cos_t, sin_t, vals):
+            if _ring_keeps(grey, pts[i, 0], pts[i, 1], radius, min_contrast, cos_t, sin_t, vals, True):
                 keep[i] = True
                 break
     return keep
@@ -425,7 +428,7 @@ def _ring_directions() -> tuple[np.ndarray, np.ndarray]:
 
 @njit(cache=True, nogil=True)
 def _ring_keeps(grey: np.ndarray, x: float, y: float, radius: float, min_contrast: float, cos_t: np.ndarray,
-                sin_t: np.ndarray, vals: np.ndarray) -> bool:
+                sin_t: np.ndarray, vals: np.ndarray, symmetric: bool) -> bool:
     """ring_prefilter's test of one point at one radius (vals: a work array of _RING_SAMPLES)."""
     n = _RING_SAMPLES
     for scale in (0.5, 1.0):
@@ -458,7 +461,7 @@ def _ring_keeps(grey: np.ndarray, x: float, y: float, radius: float, min_contras
         for k in range(n):
             spread += abs(vals[k] - mean)
             asym += abs(vals[k] - vals[(k + n // 2) % n])
-        if asym > 0.6 * spread:
+        if symmetric and asym > 0.6 * spread:
             continue
         changes = 0
         for j in range(1, n + 1):
