@@ -14,6 +14,7 @@ import pytest
 
 import edgecal
 from edgecal.detection.candidates import prepare_image
+from edgecal.detection.completion import grid_may_continue
 from edgecal.detection.grouping import CROSS_RATIO_EQUAL_STEPS, cross_ratio, group_grids
 from edgecal.detection.params import DetectorParams, params_from_mapping
 from edgecal.detection.probe import (
@@ -365,19 +366,59 @@ def test_a_narrow_margin_before_a_dark_background_does_not_grow_the_board(tilt_x
     """A 5x4 board whose white margin is 0.3 of a square, then a dark background: the probe confirms every
     other point of the margin's line (those next to a black square). Taken as a new row they made a 5x5
     grid that matched no board (the robot sequences' 5x4 board was missed in 114 of 120 images)."""
-    target = planar_target(5, 4, 30.0)
-    board = target.boards[0]
-    panels = panels_from_target(target, margin_mm=0.3 * board.square_mm)
-    R = cv2.Rodrigues(np.array([math.radians(tilt_x_deg), math.radians(tilt_y_deg), 0.3]))[0]
-    t = -R @ board.centre_mm + np.array([0.0, 0.0, 700.0])
-    view = render_view(camera_from_fov((640, 480), 60.0), panels, R, t, background=0.3,
-                       photometric=Photometric(blur_sigma=0.7, noise_sigma=1.0), rng=1)
+    target, view = _narrow_margin_view(tilt_x_deg, tilt_y_deg)
     debug = edgecal.detect_debug(view.image, target)
     assert len(debug.detections) == 1, debug.notes
     (det,) = debug.detections
     truth = {tuple(i): c for i, c in zip(view.ids(), view.corners())}
     err = [np.linalg.norm(c - truth[tuple(i)]) for i, c in zip(det.ids.tolist(), det.corners)]
     assert len(err) == 20 and max(err) < 0.1
+
+
+def _narrow_margin_view(tilt_x_deg: float, tilt_y_deg: float):
+    """A 5x4 board whose white margin is 0.3 of a square, then a dark background (see below)."""
+    target = planar_target(5, 4, 30.0)
+    board = target.boards[0]
+    panels = panels_from_target(target, margin_mm=0.3 * board.square_mm)
+    R = cv2.Rodrigues(np.array([math.radians(tilt_x_deg), math.radians(tilt_y_deg), 0.3]))[0]
+    t = -R @ board.centre_mm + np.array([0.0, 0.0, 700.0])
+    return target, render_view(camera_from_fov((640, 480), 60.0), panels, R, t, background=0.3,
+                               photometric=Photometric(blur_sigma=0.7, noise_sigma=1.0), rng=1)
+
+
+def test_grid_may_continue_tells_a_sub_grid_from_a_whole_board() -> None:
+    """completion.grid_may_continue on true corners: a whole board has its margin beyond it (also a narrow
+    margin before a dark background, whose rings alternate), the 8x6 and 9x5 parts of a 9x6 board have a
+    line of corners beyond them, on the full- and on the half-resolution image."""
+    view = planar_view(3, size=(640, 480), square_px=(35.0, 45.0))
+    _target, narrow = _narrow_margin_view(-30.0, 20.0)
+    p = DetectorParams()
+    for scale in (1.0, 0.5):
+        grids = []
+        for v in (view, narrow):
+            image = v.image if scale == 1.0 else cv2.pyrDown(v.image)
+            smooth = prepare_image(image, 0.8)[0]
+            grid = {tuple(i): scale * c for i, c in zip(v.ids().tolist(), v.corners())}
+            grids.append((grid, smooth))
+        (whole, smooth), (narrow_grid, narrow_smooth) = grids
+        assert not grid_may_continue(whole, smooth, p), scale
+        if scale == 1.0:  # (its 10 px squares at half resolution: the detector does not ask there)
+            assert not grid_may_continue(narrow_grid, narrow_smooth, p)
+        part = {k: c for k, c in whole.items() if k[0] < 8}
+        assert grid_may_continue(part, smooth, p), scale
+        part = {k: c for k, c in whole.items() if k[1] > 0}
+        assert grid_may_continue(part, smooth, p), scale
+
+
+@pytest.mark.parametrize("cols,rows", [(8, 6), (9, 5)])
+def test_a_board_of_large_squares_inside_a_larger_grid_is_not_the_asked_board(cols: int, rows: int) -> None:
+    """As above with squares large enough that the full-resolution window leaves out the lines beyond a
+    board where half resolution sees none (detector._refine_at_full_resolution)."""
+    for seed in (11, 3, 7, 12):
+        view = planar_view(seed, size=(1280, 800), square_px=(50.0, 70.0))
+        debug = edgecal.detect_debug(view.image, planar_target(cols, rows))
+        assert debug.detections == [], (seed, [d.grid for d in debug.detections])
+        assert any(f"found a 9x6 grid; the target says {cols}x{rows}" in n for n in debug.notes), debug.notes
 
 
 def test_three_boards_of_one_size_are_all_returned_and_numbered() -> None:

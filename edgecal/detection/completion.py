@@ -541,6 +541,34 @@ class _VerifiedPredictions:
         return self._refined[at], self._good[at]
 
 
+def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, params: DetectorParams) -> bool:
+    """Whether complete_grid could grow the grid by a line, told from its predictions alone on the image's
+    smoothed level ``smooth`` (no gradients, no refinement): a side where rings round most of the points
+    predicted one line beyond it cross dark/bright four times (as many as complete_grid must confirm there;
+    ring_prefilter without its symmetry test, at the probe's radius, as verify_predictions tests them) and
+    the squares beyond those points alternate (squares_beyond_alternate). Where the rings go round a
+    board's border into a dark background beyond a narrow margin they cross four times too; the squares
+    beyond the border do not alternate."""
+    dense, lo = dense_labels(grid)
+    u0, v0 = (int(c) for c in lo + 2)
+    u1, v1 = (int(c) for c in lo + np.array(dense.shape[:2]) - 3)
+    labels, outward = _side_labels(u0, v0, u1, v1, True, True)
+    pts, spacing, ok = _extrapolate(dense, int(lo[0]), int(lo[1]), labels, outward)
+    ok &= ring_prefilter(smooth, np.ascontiguousarray(pts), probe_radii(spacing, params),
+                         0.5 * params.min_contrast, False)
+    for out in np.unique(outward, axis=0).tolist():
+        side = (outward == out).all(axis=1)
+        seen = np.flatnonzero(side & ok)
+        if len(seen) < max(2, 0.6 * side.sum()):
+            continue
+        line = list(map(tuple, labels[seen].tolist()))
+        trial = dict(grid)
+        trial.update(zip(line, pts[seen]))
+        if squares_beyond_alternate(trial, line, tuple(out), smooth, params.min_contrast):
+            return True
+    return False
+
+
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,
                   gy: np.ndarray, max_dim: int, params: DetectorParams,
                   accepted: np.ndarray | None = None) -> dict[tuple[int, int], np.ndarray]:

@@ -28,7 +28,7 @@ from edgecal.detection.candidates import (
     noise_response_floor,
     snap_to_saddle,
 )
-from edgecal.detection.completion import complete_grid, trim_false_edges
+from edgecal.detection.completion import complete_grid, grid_may_continue, trim_false_edges
 from edgecal.detection.corner_covariance import add_board_covariances, covariance_noise_sigma
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
@@ -58,6 +58,10 @@ DEFAULT_PARAMS = DetectorParams()
 # Closest two corners of a board may be at half resolution before its corners are not trusted there
 # (sub-pixel windows need a few pixels of their own; the full-resolution search decides below this).
 MIN_HALF_SPACING_PX = 5.0
+# Closest two corners of a board at half resolution from which a line of corners beyond it would be seen
+# there too (its squares shrink by less than half from one line to the next), so that a board nothing
+# continues at half resolution is not grown at full resolution (see _refine_at_full_resolution).
+GROWTH_CHECK_HALF_SPACING_PX = 10.0
 # Completion grows a grid up to this many labels per axis whatever the board's size, so that a board that is
 # part of a larger regular grid is seen as that grid (and its size said in the note), never as a sub-grid.
 GRID_GROWTH_MAX_DIM = 40
@@ -71,6 +75,10 @@ SATURATED_LEVEL = 250
 # of the outermost corners. Smoothing and gradients then cost the window's area, not the image's.
 WINDOW_MARGIN_STEPS = 2.5
 WINDOW_MARGIN_PX = 48
+# ... and without completion (see _refine_at_full_resolution) this many: the rim check (subpixel.
+# _window_reaches_edge) samples the outer squares half a square along the rim beyond a board's last corners,
+# the covariances' light field a quarter square diagonally from every corner.
+WINDOW_RIM_MARGIN_STEPS = 0.75
 # The full-resolution smoothing's noise per half-resolution noise estimate (1 / pyrDown's gain on white
 # noise): the value the smoothing was tuned with (see _search).
 SMOOTHING_NOISE_PER_HALF_NOISE = 1.0 / 0.273
@@ -201,7 +209,7 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     # smoothing for the true noise moved corners of a hard render by up to 7 px.
     smooth_noise = noise_half * SMOOTHING_NOISE_PER_HALF_NOISE
     if all_boards_found(half.detections, target):
-        refined = _refine_at_full_resolution(half, grey, smooth_noise, p)
+        refined = _refine_at_full_resolution(half, half_level, grey, smooth_noise, p)
         if refined is not None:
             return refined
     # The full search's thresholds (candidates, ChESS) are quantiles of the image's noise, so they need the
@@ -231,25 +239,36 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     return full, level
 
 
-def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sigma: float, p: DetectorParams
-                               ) -> tuple[DetectionDebug, Level] | None:
-    """Boards found at half resolution, scaled up (x_full = 2 x_half) and refined at full resolution, on a
-    window of ``grey`` around them (WINDOW_MARGIN_STEPS); also returns that window's level.
+def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np.ndarray, noise_sigma: float,
+                               p: DetectorParams) -> tuple[DetectionDebug, Level] | None:
+    """Boards found at half resolution (on ``half_level``), scaled up (x_full = 2 x_half) and refined at full
+    resolution, on a window of ``grey`` around them; also returns that window's level.
 
     None when a board was too small at half resolution to trust (corners closer than MIN_HALF_SPACING_PX
     there), does not stay regular after refinement or extends beyond its size at full resolution: the
     caller then works at full resolution. ``noise_sigma``: what the window's smoothing is set for (it only
     refines and completes boards: no thresholds on noise there).
+
+    Whether a board may be part of a larger grid is asked at full resolution (completion one line beyond
+    it), which needs the window to reach WINDOW_MARGIN_STEPS grid steps beyond the board. Where its
+    squares are large at half resolution (GROWTH_CHECK_HALF_SPACING_PX) and no ring round the points one
+    line beyond it alternates there (completion.grid_may_continue), no such line can be seen and the window
+    reaches WINDOW_RIM_MARGIN_STEPS beyond it: with large squares the margin was most of the window.
     """
     boxes = []
+    may_grow = []
     for det in half.detections:
-        if 2.0 * nearest_spacing(det.corners).min() < 2.0 * MIN_HALF_SPACING_PX:
+        spacing = nearest_spacing(det.corners).min()
+        if spacing < MIN_HALF_SPACING_PX:
             return None
-        margin = WINDOW_MARGIN_STEPS * 2.0 * _largest_step(det.corners, det.ids) + WINDOW_MARGIN_PX
+        may_grow.append(spacing < GROWTH_CHECK_HALF_SPACING_PX or grid_may_continue(
+            dict(zip(map(tuple, det.ids.tolist()), det.corners)), half_level.smooth, p))
+        steps = WINDOW_MARGIN_STEPS if may_grow[-1] else WINDOW_RIM_MARGIN_STEPS
+        margin = WINDOW_MARGIN_PX + steps * 2.0 * _largest_step(det.corners, det.ids)
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
     level = window_level(grey, noise_sigma, (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
-    for det in half.detections:
+    for det, grows in zip(half.detections, may_grow):
         spacing = 2.0 * nearest_spacing(det.corners)
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, to 0.01 px (final_corners
         # polishes to 0.001 px right after: with its criteria here too, the same corners to 6e-4 px, slower).
@@ -259,9 +278,8 @@ def _refine_at_full_resolution(half: DetectionDebug, grey: np.ndarray, noise_sig
         if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
-        grown = complete_grid(dict(zip(map(tuple, det.ids.tolist()), xy)), level.smooth,
-                              level.gx, level.gy, GRID_GROWTH_MAX_DIM, p)
-        if len(grown) > len(xy):
+        if grows and len(complete_grid(dict(zip(map(tuple, det.ids.tolist()), xy)), level.smooth, level.gx,
+                                       level.gy, GRID_GROWTH_MAX_DIM, p)) > len(xy):
             return None
         xy, det.xjunction_fitted, det.bend_px, det.xjunction_noise = polish_corners(level.grey, level.smooth, xy,
                                                                                    det.ids, p)
