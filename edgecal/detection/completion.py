@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from edgecal.detection.candidates import snap_to_saddle
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import (
     EDGE_ACROSS_RAY,
@@ -543,19 +544,19 @@ class _VerifiedPredictions:
 
 def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, params: DetectorParams) -> bool:
     """Whether complete_grid could grow the grid by a line, told from its predictions alone on the image's
-    smoothed level ``smooth`` (no gradients, no refinement): a side where rings round most of the points
-    predicted one line beyond it cross dark/bright four times (as many as complete_grid must confirm there;
-    ring_prefilter without its symmetry test, at the probe's radius, as verify_predictions tests them) and
-    the squares beyond those points alternate (squares_beyond_alternate). Where the rings go round a
-    board's border into a dark background beyond a narrow margin they cross four times too; the squares
-    beyond the border do not alternate."""
+    smoothed level ``smooth`` (no gradients, no refinement): a side where most of the points predicted one
+    line beyond it (as many as complete_grid must confirm there), each snapped to its saddle, pass the
+    search's ring pre-filter at the probe's radius (four crossings, point-symmetric: an X-corner), and the
+    squares beyond them alternate (squares_beyond_alternate). Where a board's outer squares are cut short or
+    its margin is narrow, rings round the points beyond its border cross dark/bright four times too, but
+    not point-symmetrically."""
     dense, lo = dense_labels(grid)
     u0, v0 = (int(c) for c in lo + 2)
     u1, v1 = (int(c) for c in lo + np.array(dense.shape[:2]) - 3)
     labels, outward = _side_labels(u0, v0, u1, v1, True, True)
     pts, spacing, ok = _extrapolate(dense, int(lo[0]), int(lo[1]), labels, outward)
-    ok &= ring_prefilter(smooth, np.ascontiguousarray(pts), probe_radii(spacing, params),
-                         0.5 * params.min_contrast, False)
+    pts = snap_to_saddle(smooth, np.ascontiguousarray(pts), 3)
+    ok &= ring_prefilter(smooth, pts, probe_radii(spacing, params), 0.5 * params.min_contrast)
     for out in np.unique(outward, axis=0).tolist():
         side = (outward == out).all(axis=1)
         seen = np.flatnonzero(side & ok)
