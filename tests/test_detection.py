@@ -132,6 +132,30 @@ def test_probe_and_prefilter_over_radii_match_one_call_per_radius() -> None:
     np.testing.assert_array_equal(ring_prefilter_radii(smooth, pts, radii, 12.0), np.any(rings, axis=0))
 
 
+def test_ring_prefilter_without_symmetry_keeps_points_off_a_corner() -> None:
+    """Without its symmetry test the ring pre-filter (what completion tests its predictions with) keeps
+    points a third of the ring's radius off an X-corner, which the symmetric test drops; neither keeps
+    points in a board's margin or on a square's edge."""
+    view = planar_view(3, size=(640, 480), square_px=(35.0, 45.0))
+    smooth = prepare_image(view.image, 0.8)[0]
+    corners = view.corners()
+    spacing = np.median(np.linalg.norm(np.diff(corners[:9], axis=0), axis=1))
+    r = 0.6 * spacing
+    rng = np.random.default_rng(2)
+    angle = rng.uniform(0, 2 * np.pi, len(corners))
+    off = corners + (r / 3) * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    radii = np.full(len(corners), r)
+    loose = ring_prefilter(smooth, off, radii, 12.0, False)
+    strict = ring_prefilter(smooth, off, radii, 12.0)
+    assert loose.mean() > 0.9 and strict.mean() < loose.mean() - 0.3, (loose.mean(), strict.mean())
+    ids = view.ids()
+    first, second = corners[ids[:, 1] == 0], corners[ids[:, 1] == 1]
+    margin = 2 * first - second  # one line beyond the board's first row: its margin
+    edge = 0.5 * (first[:-1] + first[1:])  # half way between corners: on a square's edge
+    for pts in (margin, edge):
+        assert not ring_prefilter(smooth, pts, np.full(len(pts), r), 12.0, False).any()
+
+
 # --- Eq. (6)-(8): grouping and the cross-ratio ---------------------------------------------------------
 
 def test_cross_ratio_is_projective_invariant() -> None:

@@ -360,7 +360,9 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     e.g. along a line a fisheye lens bends hard). Predictions that are ``pinned`` down independently
     (holes inside a grid: neighbours on all sides; a tracked board: the pose) only need the probe to see
     a corner there (thresholds relaxed further); the others (new rows outside a grid) must pass the probe
-    properly. Either way the refinement must stay within 0.25 x spacing of the prediction. ``window``: the
+    properly, and are refined and probed only where a ring round them crosses dark/bright four times
+    (ring_prefilter without its symmetry test). Either way the refinement must stay within 0.25 x spacing
+    of the prediction. ``window``: the
     square size each refinement window is made for (subpixel.window_spacing), default ``spacing``.
     """
     if accepted is not None and len(accepted):

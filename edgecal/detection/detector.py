@@ -251,9 +251,9 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
 
     Whether a board may be part of a larger grid is asked at full resolution (completion one line beyond
     it), which needs the window to reach WINDOW_MARGIN_STEPS grid steps beyond the board. Where its
-    squares are large at half resolution (GROWTH_CHECK_HALF_SPACING_PX) and no ring round the points one
-    line beyond it alternates there (completion.grid_may_continue), no such line can be seen and the window
-    reaches WINDOW_RIM_MARGIN_STEPS beyond it: with large squares the margin was most of the window.
+    squares are large at half resolution (GROWTH_CHECK_HALF_SPACING_PX) and completion.grid_may_continue
+    sees no corners of a line beyond it there, the board is not grown and the window reaches
+    WINDOW_RIM_MARGIN_STEPS beyond it: with large squares the wide margin was most of the window.
     """
     boxes = []
     may_grow = []
