@@ -281,14 +281,31 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
             continue
         mid = 0.5 * (a0 + a1)
         cells.append(mid + fraction * (0.5 * (b0 + b1) - mid))
+    vals, inside = _cell_means(smooth, np.array(cells, dtype=np.float64).reshape(-1, 2))
+    return vals if inside else None
+
+
+@njit(cache=True, nogil=True)
+def _cell_means(smooth: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The mean of the 3x3 pixels round each cell (M, 2: x, y rounded half to even), and whether all cells
+    lie inside the image (False: the means are not all there). The mean is summed as numpy's
+    smooth[...].mean() sums nine values (pairwise: eight accumulators, then the ninth) in smooth's dtype,
+    so that it is the same to the bit (one numba pass: a numpy mean per cell cost more than the test)."""
     hh, ww = smooth.shape
-    vals = []
-    for x, y in cells:
+    out = np.empty(cells.shape[0])
+    for k in range(cells.shape[0]):
+        x = cells[k, 0]
+        y = cells[k, 1]
         if not (1 <= x < ww - 2 and 1 <= y < hh - 2):
-            return None
-        xi, yi = int(round(x)), int(round(y))
-        vals.append(float(smooth[yi - 1:yi + 2, xi - 1:xi + 2].mean()))
-    return np.asarray(vals)
+            return out[:k], False
+        xi = int(np.rint(x))
+        yi = int(np.rint(y))
+        r0 = smooth[yi - 1]
+        r1 = smooth[yi]
+        r2 = smooth[yi + 1]
+        total = (((r0[xi - 1] + r0[xi]) + (r0[xi + 1] + r1[xi - 1])) + ((r1[xi] + r1[xi + 1]) + (r2[xi - 1] + r2[xi])))
+        out[k] = (total + r2[xi + 1]) / np.float32(9.0)
+    return out, True
 
 
 def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
