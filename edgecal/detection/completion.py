@@ -252,10 +252,11 @@ _HOMOGRAPHY_PROBE = np.c_[np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.
 
 
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
-                  outward: tuple[int, int], smooth: np.ndarray, fraction: float) -> np.ndarray | None:
-    """Mean intensity of the squares just outside a grid line, in order along it, sampled ``fraction`` of a
-    grid step outwards: one per pair of neighbouring labels of the line both in the grid (a square lies
-    between them; between labels two apart lies a corner, not a square). None: a square outside the image."""
+                  outward: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The squares just outside a grid line, in order along it: one per pair of neighbouring labels of the
+    line both in the grid (a square lies between them; between labels two apart lies a corner, not a
+    square), as the midpoint of the pair (K, 2) and that of the pair's points one square outwards (K, 2);
+    _cell_values samples the squares between them. (Made once for all of BEYOND_STEP_FRACTIONS.)"""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
     place = {uv: uv[0] * along[0] + uv[1] * along[1] for uv in line}
@@ -273,15 +274,23 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
             outer.append(2.0 * p0 - p1)
         else:
             outer.append(3.0 * p0 - 3.0 * p1 + p2)
-    cells = []
+    mids = []
+    beyond = []
     for k in range(len(ordered) - 1):
         a0, a1 = grid.get(ordered[k]), grid.get(ordered[k + 1])
         b0, b1 = outer[k], outer[k + 1]
         if a0 is None or a1 is None or b0 is None or b1 is None or place[ordered[k + 1]] - place[ordered[k]] != 1:
             continue
-        mid = 0.5 * (a0 + a1)
-        cells.append(mid + fraction * (0.5 * (b0 + b1) - mid))
-    vals, inside = _cell_means(smooth, np.array(cells, dtype=np.float64).reshape(-1, 2))
+        mids.append(0.5 * (a0 + a1))
+        beyond.append(0.5 * (b0 + b1))
+    return np.array(mids, dtype=np.float64).reshape(-1, 2), np.array(beyond, dtype=np.float64).reshape(-1, 2)
+
+
+def _cell_values(cells: tuple[np.ndarray, np.ndarray], smooth: np.ndarray, fraction: float) -> np.ndarray | None:
+    """Mean intensity of the squares ``cells`` (_cells_beyond) sampled ``fraction`` of a grid step outwards
+    from the line. None: a square outside the image."""
+    mid, beyond = cells
+    vals, inside = _cell_means(smooth, mid + fraction * (beyond - mid))
     return vals if inside else None
 
 
@@ -321,8 +330,9 @@ def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list
     next to a black square), and three such points on a board of five columns made it a 5x5 grid that
     matched no board (bench/live.py's robot sequences: the 5x4 board missed in 114 of 120 images).
     """
+    cells = _cells_beyond(grid, line, outward)
     for fraction in BEYOND_STEP_FRACTIONS:
-        vals = _cells_beyond(grid, line, outward, smooth, fraction)
+        vals = _cell_values(cells, smooth, fraction)
         if vals is None:
             return True
         if len(vals) < 2:
@@ -340,8 +350,9 @@ def squares_beyond_uniform(grid: dict[tuple[int, int], np.ndarray], line: list[t
     """Whether the squares just outside a grid line are one uniform area (a board's margin): the evidence
     needed to remove a line already in a grid (where extrapolation is poor, e.g. at a fisheye rim, cells
     land anywhere; that is not uniform, and the line stays)."""
+    cells = _cells_beyond(grid, line, outward)
     for fraction in BEYOND_STEP_FRACTIONS:
-        vals = _cells_beyond(grid, line, outward, smooth, fraction)
+        vals = _cell_values(cells, smooth, fraction)
         if vals is None or len(vals) < 3 or np.mean(np.abs(np.diff(vals)) < min_contrast) < 0.7:
             return False
     return True
