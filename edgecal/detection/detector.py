@@ -15,6 +15,7 @@ import math
 
 import cv2
 import numpy as np
+from numba import njit
 
 from edgecal.detection.board_corners import final_corners, polish_corners, resettle_slid_corners, unpolished
 from edgecal.detection.candidates import (
@@ -291,12 +292,32 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
 
 def _largest_step(corners: np.ndarray, ids: np.ndarray) -> float:
     """The longest distance (px) between neighbouring corners along a board's rows and columns."""
-    cols, rows = int(ids[:, 0].max()) + 1, int(ids[:, 1].max()) + 1
+    step = _longest_neighbour_step(np.ascontiguousarray(corners, np.float64), np.ascontiguousarray(ids, np.int64))
+    return step if step >= 0.0 else float(nearest_spacing(corners).max())
+
+
+@njit(cache=True, nogil=True)
+def _longest_neighbour_step(corners: np.ndarray, ids: np.ndarray) -> float:
+    """_largest_step's longest finite distance between corners (N, 2) whose ids (N, 2: col, row) are
+    neighbours along a row or a column; -1 when there is none (one numba pass: its dozen numpy steps cost
+    more than the distances)."""
+    cols = ids[:, 0].max() + 1
+    rows = ids[:, 1].max() + 1
     dense = np.full((rows, cols, 2), np.nan)
-    dense[ids[:, 1], ids[:, 0]] = corners
-    steps = np.concatenate([np.linalg.norm(np.diff(dense, axis=axis), axis=-1).ravel() for axis in (0, 1)])
-    steps = steps[np.isfinite(steps)]
-    return float(steps.max()) if steps.size else float(nearest_spacing(corners).max())
+    for i in range(ids.shape[0]):
+        dense[ids[i, 1], ids[i, 0], 0] = corners[i, 0]
+        dense[ids[i, 1], ids[i, 0], 1] = corners[i, 1]
+    best = -1.0
+    for r in range(rows):
+        for c in range(cols):
+            for dr, dc in ((1, 0), (0, 1)):
+                if r + dr < rows and c + dc < cols:
+                    dx = dense[r + dr, c + dc, 0] - dense[r, c, 0]
+                    dy = dense[r + dr, c + dc, 1] - dense[r, c, 1]
+                    d = math.sqrt(dx * dx + dy * dy)  # np.linalg.norm's sum of two squares
+                    if math.isfinite(d) and d > best:
+                        best = d
+    return best
 
 
 def _outside_boards(pts: np.ndarray, boards: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
