@@ -258,8 +258,10 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
     """
     boxes = []
     may_grow = []
+    half_spacings = []  # (each board's, used again for its refinement windows below)
     for det in half.detections:
-        spacing = nearest_spacing(det.corners).min()
+        half_spacings.append(nearest_spacing(det.corners))
+        spacing = half_spacings[-1].min()
         if spacing < MIN_HALF_SPACING_PX:
             return None
         may_grow.append(spacing < GROWTH_CHECK_HALF_SPACING_PX or grid_may_continue(
@@ -269,8 +271,8 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
     level = window_level(grey, noise_sigma, (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
-    for det, grows in zip(half.detections, may_grow):
-        spacing = 2.0 * nearest_spacing(det.corners)
+    for det, grows, half_spacing in zip(half.detections, may_grow, half_spacings):
+        spacing = 2.0 * half_spacing
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, to 0.01 px (final_corners
         # polishes to 0.001 px right after: with its criteria here too, the same corners to 6e-4 px, slower).
         xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0,
