@@ -9,6 +9,7 @@ added at the grid's sides the same way, so a grid grows up to the board's edge a
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -186,12 +187,22 @@ def _probe_points(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def dense_labels(grid: dict[tuple[int, int], np.ndarray], margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The grid as a dense array (U, V, 2) over its labels' span plus ``margin`` on every side, NaN where a
     label is missing, and the label (u, v) of its element [0, 0]."""
-    keys = np.array(list(grid.keys()), dtype=np.int64)
+    keys, xy = grid_arrays(grid)
     lo = keys.min(axis=0) - margin
     span = keys.max(axis=0) - lo + 1 + margin
     dense = np.full((span[0], span[1], 2), np.nan)
-    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = np.array(list(grid.values()), dtype=np.float64)
+    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = xy
     return dense, lo
+
+
+def grid_arrays(grid: dict[tuple[int, int], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A grid's labels (N, 2) int64 and points (N, 2) float64, in the dict's order. (np.fromiter and
+    np.concatenate: np.array of the lists of tuples and of points cost twice as much.)"""
+    n = len(grid)
+    if n == 0:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 2))
+    keys = np.fromiter(itertools.chain.from_iterable(grid), np.int64, 2 * n).reshape(n, 2)
+    return keys, np.concatenate(list(grid.values())).astype(np.float64, copy=False).reshape(n, 2)
 
 
 def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int, int]]

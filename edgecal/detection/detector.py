@@ -29,7 +29,7 @@ from edgecal.detection.candidates import (
     noise_response_floor,
     snap_to_saddle,
 )
-from edgecal.detection.completion import complete_grid, grid_may_continue, trim_false_edges
+from edgecal.detection.completion import complete_grid, grid_arrays, grid_may_continue, trim_false_edges
 from edgecal.detection.corner_covariance import add_board_covariances, covariance_noise_sigma
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
@@ -412,8 +412,7 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
     used_boards = {d.board for d in debug.detections}
     notes: list[str] = []
     for grid in finished:
-        uv = np.array(list(grid.keys()), dtype=np.int64)
-        xy = np.array(list(grid.values()), dtype=np.float64)
+        uv, xy = grid_arrays(grid)
         span = uv.max(axis=0) - uv.min(axis=0) + 1
         full = len(uv) == span[0] * span[1]
         boards = by_size.get(frozenset(int(s) for s in span), [])
