@@ -9,6 +9,7 @@ added at the grid's sides the same way, so a grid grows up to the board's edge a
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -186,12 +187,22 @@ def _probe_points(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def dense_labels(grid: dict[tuple[int, int], np.ndarray], margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The grid as a dense array (U, V, 2) over its labels' span plus ``margin`` on every side, NaN where a
     label is missing, and the label (u, v) of its element [0, 0]."""
-    keys = np.array(list(grid.keys()), dtype=np.int64)
+    keys, xy = grid_arrays(grid)
     lo = keys.min(axis=0) - margin
     span = keys.max(axis=0) - lo + 1 + margin
     dense = np.full((span[0], span[1], 2), np.nan)
-    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = np.array(list(grid.values()), dtype=np.float64)
+    dense[keys[:, 0] - lo[0], keys[:, 1] - lo[1]] = xy
     return dense, lo
+
+
+def grid_arrays(grid: dict[tuple[int, int], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """A grid's labels (N, 2) int64 and points (N, 2) float64, in the dict's order. (np.fromiter and
+    np.concatenate: np.array of the lists of tuples and of points cost twice as much.)"""
+    n = len(grid)
+    if n == 0:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 2))
+    keys = np.fromiter(itertools.chain.from_iterable(grid), np.int64, 2 * n).reshape(n, 2)
+    return keys, np.concatenate(list(grid.values())).astype(np.float64, copy=False).reshape(n, 2)
 
 
 def predict_holes(grid: dict[tuple[int, int], np.ndarray], holes: list[tuple[int, int]]
@@ -245,15 +256,18 @@ def _ring_offsets(reach: int) -> np.ndarray:
 
 
 _RING_OFFSETS = {reach: _ring_offsets(reach) for reach in (1, 2)}
+# The outward steps (du, dv) of _side_labels' four lines, sorted.
+_OUTWARD_STEPS = ((-1, 0), (0, -1), (0, 1), (1, 0))
 # The hole (label offset 0) and its four diagonal neighbours, homogeneous: the point and the spacing there.
 _HOMOGRAPHY_PROBE = np.c_[np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]]), np.ones(5)]
 
 
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
-                  outward: tuple[int, int], smooth: np.ndarray, fraction: float) -> np.ndarray | None:
-    """Mean intensity of the squares just outside a grid line, in order along it, sampled ``fraction`` of a
-    grid step outwards: one per pair of neighbouring labels of the line both in the grid (a square lies
-    between them; between labels two apart lies a corner, not a square). None: a square outside the image."""
+                  outward: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The squares just outside a grid line, in order along it: one per pair of neighbouring labels of the
+    line both in the grid (a square lies between them; between labels two apart lies a corner, not a
+    square), as the midpoint of the pair (K, 2) and that of the pair's points one square outwards (K, 2);
+    _cell_values samples the squares between them. (Made once for all of BEYOND_STEP_FRACTIONS.)"""
     du, dv = outward
     along = (1 - abs(du), 1 - abs(dv))
     place = {uv: uv[0] * along[0] + uv[1] * along[1] for uv in line}
@@ -271,22 +285,47 @@ def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int,
             outer.append(2.0 * p0 - p1)
         else:
             outer.append(3.0 * p0 - 3.0 * p1 + p2)
-    cells = []
+    mids = []
+    beyond = []
     for k in range(len(ordered) - 1):
         a0, a1 = grid.get(ordered[k]), grid.get(ordered[k + 1])
         b0, b1 = outer[k], outer[k + 1]
         if a0 is None or a1 is None or b0 is None or b1 is None or place[ordered[k + 1]] - place[ordered[k]] != 1:
             continue
-        mid = 0.5 * (a0 + a1)
-        cells.append(mid + fraction * (0.5 * (b0 + b1) - mid))
+        mids.append(0.5 * (a0 + a1))
+        beyond.append(0.5 * (b0 + b1))
+    return np.array(mids, dtype=np.float64).reshape(-1, 2), np.array(beyond, dtype=np.float64).reshape(-1, 2)
+
+
+def _cell_values(cells: tuple[np.ndarray, np.ndarray], smooth: np.ndarray, fraction: float) -> np.ndarray | None:
+    """Mean intensity of the squares ``cells`` (_cells_beyond) sampled ``fraction`` of a grid step outwards
+    from the line. None: a square outside the image."""
+    mid, beyond = cells
+    vals, inside = _cell_means(smooth, mid + fraction * (beyond - mid))
+    return vals if inside else None
+
+
+@njit(cache=True, nogil=True)
+def _cell_means(smooth: np.ndarray, cells: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The mean of the 3x3 pixels round each cell (M, 2: x, y rounded half to even), and whether all cells
+    lie inside the image (False: the means are not all there). The mean is summed as numpy's
+    smooth[...].mean() sums nine values (pairwise: eight accumulators, then the ninth) in smooth's dtype,
+    so that it is the same to the bit (one numba pass: a numpy mean per cell cost more than the test)."""
     hh, ww = smooth.shape
-    vals = []
-    for x, y in cells:
+    out = np.empty(cells.shape[0])
+    for k in range(cells.shape[0]):
+        x = cells[k, 0]
+        y = cells[k, 1]
         if not (1 <= x < ww - 2 and 1 <= y < hh - 2):
-            return None
-        xi, yi = int(round(x)), int(round(y))
-        vals.append(float(smooth[yi - 1:yi + 2, xi - 1:xi + 2].mean()))
-    return np.asarray(vals)
+            return out[:k], False
+        xi = int(np.rint(x))
+        yi = int(np.rint(y))
+        r0 = smooth[yi - 1]
+        r1 = smooth[yi]
+        r2 = smooth[yi + 1]
+        total = (((r0[xi - 1] + r0[xi]) + (r0[xi + 1] + r1[xi - 1])) + ((r1[xi] + r1[xi + 1]) + (r2[xi - 1] + r2[xi])))
+        out[k] = (total + r2[xi + 1]) / np.float32(9.0)
+    return out, True
 
 
 def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
@@ -302,8 +341,9 @@ def squares_beyond_alternate(grid: dict[tuple[int, int], np.ndarray], line: list
     next to a black square), and three such points on a board of five columns made it a 5x5 grid that
     matched no board (bench/live.py's robot sequences: the 5x4 board missed in 114 of 120 images).
     """
+    cells = _cells_beyond(grid, line, outward)
     for fraction in BEYOND_STEP_FRACTIONS:
-        vals = _cells_beyond(grid, line, outward, smooth, fraction)
+        vals = _cell_values(cells, smooth, fraction)
         if vals is None:
             return True
         if len(vals) < 2:
@@ -321,8 +361,9 @@ def squares_beyond_uniform(grid: dict[tuple[int, int], np.ndarray], line: list[t
     """Whether the squares just outside a grid line are one uniform area (a board's margin): the evidence
     needed to remove a line already in a grid (where extrapolation is poor, e.g. at a fisheye rim, cells
     land anywhere; that is not uniform, and the line stays)."""
+    cells = _cells_beyond(grid, line, outward)
     for fraction in BEYOND_STEP_FRACTIONS:
-        vals = _cells_beyond(grid, line, outward, smooth, fraction)
+        vals = _cell_values(cells, smooth, fraction)
         if vals is None or len(vals) < 3 or np.mean(np.abs(np.diff(vals)) < min_contrast) < 0.7:
             return False
     return True
@@ -559,7 +600,9 @@ def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarra
     pts, spacing, ok = _extrapolate(dense, int(lo[0]), int(lo[1]), labels, outward)
     pts = snap_to_saddle(smooth, np.ascontiguousarray(pts), 3)
     ok &= ring_prefilter(smooth, pts, probe_radii(spacing, params), 0.5 * params.min_contrast)
-    for out in np.unique(outward, axis=0).tolist():
+    # the four outward steps in np.unique's order (np.unique(outward, axis=0) cost more than the whole test;
+    # a side without labels has no point seen and is skipped)
+    for out in _OUTWARD_STEPS:
         side = (outward == out).all(axis=1)
         seen = np.flatnonzero(side & ok)
         if len(seen) < max(2, 0.6 * side.sum()):
@@ -567,7 +610,7 @@ def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarra
         line = list(map(tuple, labels[seen].tolist()))
         trial = dict(grid)
         trial.update(zip(line, pts[seen]))
-        if squares_beyond_alternate(trial, line, tuple(out), smooth, params.min_contrast):
+        if squares_beyond_alternate(trial, line, out, smooth, params.min_contrast):
             return True
     return False
 

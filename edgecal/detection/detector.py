@@ -15,6 +15,7 @@ import math
 
 import cv2
 import numpy as np
+from numba import njit
 
 from edgecal.detection.board_corners import final_corners, polish_corners, resettle_slid_corners, unpolished
 from edgecal.detection.candidates import (
@@ -28,7 +29,7 @@ from edgecal.detection.candidates import (
     noise_response_floor,
     snap_to_saddle,
 )
-from edgecal.detection.completion import complete_grid, grid_may_continue, trim_false_edges
+from edgecal.detection.completion import complete_grid, grid_arrays, grid_may_continue, trim_false_edges
 from edgecal.detection.corner_covariance import add_board_covariances, covariance_noise_sigma
 from edgecal.detection.grouping import group_grids
 from edgecal.detection.levels import Level, window_level
@@ -257,8 +258,10 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
     """
     boxes = []
     may_grow = []
+    half_spacings = []  # (each board's, used again for its refinement windows below)
     for det in half.detections:
-        spacing = nearest_spacing(det.corners).min()
+        half_spacings.append(nearest_spacing(det.corners))
+        spacing = half_spacings[-1].min()
         if spacing < MIN_HALF_SPACING_PX:
             return None
         may_grow.append(spacing < GROWTH_CHECK_HALF_SPACING_PX or grid_may_continue(
@@ -268,8 +271,8 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
     level = window_level(grey, noise_sigma, (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
-    for det, grows in zip(half.detections, may_grow):
-        spacing = 2.0 * nearest_spacing(det.corners)
+    for det, grows, half_spacing in zip(half.detections, may_grow, half_spacings):
+        spacing = 2.0 * half_spacing
         # Half-resolution corners are ~0.5 px off at full resolution: allow the move, to 0.01 px (final_corners
         # polishes to 0.001 px right after: with its criteria here too, the same corners to 6e-4 px, slower).
         xy = refine_corners(level.smooth, 2.0 * det.corners - level.origin, spacing, max_move_px=3.0,
@@ -291,12 +294,32 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
 
 def _largest_step(corners: np.ndarray, ids: np.ndarray) -> float:
     """The longest distance (px) between neighbouring corners along a board's rows and columns."""
-    cols, rows = int(ids[:, 0].max()) + 1, int(ids[:, 1].max()) + 1
+    step = _longest_neighbour_step(np.ascontiguousarray(corners, np.float64), np.ascontiguousarray(ids, np.int64))
+    return step if step >= 0.0 else float(nearest_spacing(corners).max())
+
+
+@njit(cache=True, nogil=True)
+def _longest_neighbour_step(corners: np.ndarray, ids: np.ndarray) -> float:
+    """_largest_step's longest finite distance between corners (N, 2) whose ids (N, 2: col, row) are
+    neighbours along a row or a column; -1 when there is none (one numba pass: its dozen numpy steps cost
+    more than the distances)."""
+    cols = ids[:, 0].max() + 1
+    rows = ids[:, 1].max() + 1
     dense = np.full((rows, cols, 2), np.nan)
-    dense[ids[:, 1], ids[:, 0]] = corners
-    steps = np.concatenate([np.linalg.norm(np.diff(dense, axis=axis), axis=-1).ravel() for axis in (0, 1)])
-    steps = steps[np.isfinite(steps)]
-    return float(steps.max()) if steps.size else float(nearest_spacing(corners).max())
+    for i in range(ids.shape[0]):
+        dense[ids[i, 1], ids[i, 0], 0] = corners[i, 0]
+        dense[ids[i, 1], ids[i, 0], 1] = corners[i, 1]
+    best = -1.0
+    for r in range(rows):
+        for c in range(cols):
+            for dr, dc in ((1, 0), (0, 1)):
+                if r + dr < rows and c + dc < cols:
+                    dx = dense[r + dr, c + dc, 0] - dense[r, c, 0]
+                    dy = dense[r + dr, c + dc, 1] - dense[r, c, 1]
+                    d = math.sqrt(dx * dx + dy * dy)  # np.linalg.norm's sum of two squares
+                    if math.isfinite(d) and d > best:
+                        best = d
+    return best
 
 
 def _outside_boards(pts: np.ndarray, boards: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
@@ -389,8 +412,7 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
     used_boards = {d.board for d in debug.detections}
     notes: list[str] = []
     for grid in finished:
-        uv = np.array(list(grid.keys()), dtype=np.int64)
-        xy = np.array(list(grid.values()), dtype=np.float64)
+        uv, xy = grid_arrays(grid)
         span = uv.max(axis=0) - uv.min(axis=0) + 1
         full = len(uv) == span[0] * span[1]
         boards = by_size.get(frozenset(int(s) for s in span), [])

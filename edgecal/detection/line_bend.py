@@ -43,21 +43,44 @@ def line_curvatures(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
     its row and [:, 1] along its column, the line's curvature vector (pointing to the centre of curvature)
     from the polynomial fit of the line's corners (module docstring); NaN where the line has fewer than
     three corners."""
-    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-    ids = np.asarray(ids, dtype=np.int64).reshape(-1, 2)
-    curvatures = np.full((len(xy), 2, 2), np.nan)
+    xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
+    ids = np.ascontiguousarray(ids, dtype=np.int64).reshape(-1, 2)
     if len(xy) < 3:
-        return curvatures
-    lo = ids.min(axis=0)
-    cols, rows = (ids.max(axis=0) - lo + 1).tolist()
-    for axis, (n_lines, n_along) in enumerate(((rows, cols), (cols, rows))):
+        return np.full((len(xy), 2, 2), np.nan)
+    return _board_curvatures(xy, ids, _CUBIC_MIN_CORNERS)
+
+
+@njit(cache=True, nogil=True)
+def _board_curvatures(xy: np.ndarray, ids: np.ndarray, cubic_min: int) -> np.ndarray:
+    """line_curvatures of N >= 3 corners: the board's rows, then its columns, laid out as lines for
+    _line_curvature_kernel and its curvatures read back per corner (one numba pass: the layout's numpy
+    calls cost more than the fits)."""
+    n = xy.shape[0]
+    curvatures = np.full((n, 2, 2), np.nan)
+    lo_c, lo_r, hi_c, hi_r = ids[0, 0], ids[0, 1], ids[0, 0], ids[0, 1]
+    for i in range(1, n):
+        lo_c = min(lo_c, ids[i, 0])
+        lo_r = min(lo_r, ids[i, 1])
+        hi_c = max(hi_c, ids[i, 0])
+        hi_r = max(hi_r, ids[i, 1])
+    lo = (lo_c, lo_r)
+    cols, rows = hi_c - lo_c + 1, hi_r - lo_r + 1
+    for axis in range(2):
+        n_lines, n_along = (rows, cols) if axis == 0 else (cols, rows)
         if n_along < 3:
             continue
-        line = ids[:, 1 - axis] - lo[1 - axis]            # which row (axis 0) or column (axis 1)
-        along = ids[:, axis] - lo[axis]                     # the index along it
         points = np.full((n_lines, n_along, 2), np.nan)
-        points[line, along] = xy
-        curvatures[:, axis] = _line_curvature_kernel(points, _CUBIC_MIN_CORNERS)[line, along]
+        for i in range(n):
+            line = ids[i, 1 - axis] - lo[1 - axis]  # which row (axis 0) or column (axis 1)
+            along = ids[i, axis] - lo[axis]  # the index along it
+            points[line, along, 0] = xy[i, 0]
+            points[line, along, 1] = xy[i, 1]
+        bend = _line_curvature_kernel(points, cubic_min)
+        for i in range(n):
+            line = ids[i, 1 - axis] - lo[1 - axis]
+            along = ids[i, axis] - lo[axis]
+            curvatures[i, axis, 0] = bend[line, along, 0]
+            curvatures[i, axis, 1] = bend[line, along, 1]
     return curvatures
 
 

@@ -134,13 +134,33 @@ def grid_is_regular(corners: np.ndarray, ids: np.ndarray, cols: int, rows: int, 
     most ``max_step_ratio``; every four consecutive corners keep the cross-ratio of equal steps (Eq. 8)
     within ``cross_ratio_tolerance``. A grid whose labels went wrong zig-zags and fails.
     """
-    grid = np.full((rows, cols, 2), np.nan)
-    grid[ids[:, 1], ids[:, 0]] = corners
-    if np.isnan(grid).any():
+    grid, complete = _board_grid(np.ascontiguousarray(corners, np.float64), np.ascontiguousarray(ids, np.int64),
+                                 rows, cols)
+    if not complete:
         return False
-    cos_turn = float(np.cos(np.radians(max_turn_deg)))
+    cos_turn = math.cos(math.radians(max_turn_deg))  # (np.cos(np.radians(.)) to the bit, without its overhead)
     return _lines_are_regular(grid, cos_turn, max_step_ratio, cross_ratio_tolerance) and _lines_are_regular(
         np.ascontiguousarray(grid.transpose(1, 0, 2)), cos_turn, max_step_ratio, cross_ratio_tolerance)
+
+
+@njit(cache=True, nogil=True)
+def _board_grid(corners: np.ndarray, ids: np.ndarray, rows: int, cols: int) -> tuple[np.ndarray, bool]:
+    """The corners (N, 2) laid out by their ids (N, 2: col, row; negative ones counted from the end, as numpy
+    indexes) as a grid (rows, cols, 2), and whether it is complete: no NaN left (one numba pass instead of
+    numpy's fill, scatter and NaN test)."""
+    grid = np.full((rows, cols, 2), np.nan)
+    for i in range(ids.shape[0]):
+        c = ids[i, 0] + cols if ids[i, 0] < 0 else ids[i, 0]
+        r = ids[i, 1] + rows if ids[i, 1] < 0 else ids[i, 1]
+        if not (0 <= c < cols and 0 <= r < rows):
+            raise IndexError("grid_is_regular: an id outside the board")
+        grid[r, c, 0] = corners[i, 0]
+        grid[r, c, 1] = corners[i, 1]
+    for r in range(rows):
+        for c in range(cols):
+            if math.isnan(grid[r, c, 0]) or math.isnan(grid[r, c, 1]):
+                return grid, False
+    return grid, True
 
 
 @njit(cache=True, nogil=True)
