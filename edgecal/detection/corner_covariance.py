@@ -53,6 +53,7 @@ from numba import njit
 from edgecal.detection.subpixel import (
     REFINERS,
     fit_coefficients,
+    id_grid,
     nearest_spacing,
     saddle_fit_setup,
     subpixel_window,
@@ -1172,17 +1173,7 @@ def _grid_steps_of_boards(ids: np.ndarray, corners: np.ndarray, bounds: np.ndarr
         s, e = bounds[b], bounds[b + 1]
         if e <= s:
             continue
-        lo_c, lo_r = ids[s, 0], ids[s, 1]
-        hi_c, hi_r = lo_c, lo_r
-        for i in range(s, e):
-            lo_c = min(lo_c, ids[i, 0])
-            lo_r = min(lo_r, ids[i, 1])
-            hi_c = max(hi_c, ids[i, 0])
-            hi_r = max(hi_r, ids[i, 1])
-        grid = np.full((hi_r - lo_r + 3, hi_c - lo_c + 3, 2), np.nan)
-        for i in range(s, e):
-            grid[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 0] = corners[i, 0]
-            grid[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 1] = corners[i, 1]
+        grid, lo_c, lo_r = id_grid(corners, ids, s, e, 1)
         for i in range(s, e):
             c = ids[i, 0] - lo_c + 1
             r = ids[i, 1] - lo_r + 1

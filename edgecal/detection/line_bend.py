@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-from edgecal.detection.subpixel import solve_spd
+from edgecal.detection.subpixel import id_grid, solve_spd
 
 # Share of kappa r^2 by which the fitted line sits off a bent edge at the corner: the mean of s^2 / 2 over
 # s uniform in [-r, r], in units of r^2.
@@ -57,24 +57,13 @@ def _board_curvatures(xy: np.ndarray, ids: np.ndarray, cubic_min: int) -> np.nda
     calls cost more than the fits)."""
     n = xy.shape[0]
     curvatures = np.full((n, 2, 2), np.nan)
-    lo_c, lo_r, hi_c, hi_r = ids[0, 0], ids[0, 1], ids[0, 0], ids[0, 1]
-    for i in range(1, n):
-        lo_c = min(lo_c, ids[i, 0])
-        lo_r = min(lo_r, ids[i, 1])
-        hi_c = max(hi_c, ids[i, 0])
-        hi_r = max(hi_r, ids[i, 1])
+    grid, lo_c, lo_r = id_grid(xy, ids, 0, n, 0)  # (rows, cols, 2)
     lo = (lo_c, lo_r)
-    cols, rows = hi_c - lo_c + 1, hi_r - lo_r + 1
     for axis in range(2):
-        n_lines, n_along = (rows, cols) if axis == 0 else (cols, rows)
-        if n_along < 3:
+        # the rows as lines (axis 0), then the columns
+        points = grid if axis == 0 else np.ascontiguousarray(grid.transpose((1, 0, 2)))
+        if points.shape[1] < 3:
             continue
-        points = np.full((n_lines, n_along, 2), np.nan)
-        for i in range(n):
-            line = ids[i, 1 - axis] - lo[1 - axis]  # which row (axis 0) or column (axis 1)
-            along = ids[i, axis] - lo[axis]  # the index along it
-            points[line, along, 0] = xy[i, 0]
-            points[line, along, 1] = xy[i, 1]
         bend = _line_curvature_kernel(points, cubic_min)
         for i in range(n):
             line = ids[i, 1 - axis] - lo[1 - axis]

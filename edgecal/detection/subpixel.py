@@ -183,6 +183,26 @@ def _window_reaches_edge(smooth: np.ndarray, grid: np.ndarray, at: np.ndarray, h
 
 
 @njit(cache=True, nogil=True)
+def id_grid(xy: np.ndarray, ids: np.ndarray, start: int, end: int, pad: int) -> tuple[np.ndarray, int, int]:
+    """Corners ``start``..``end`` - 1 (at least one) of ``xy`` (N, 2) laid out by their ``ids`` (N, 2) int64
+    (col, row): a grid (rows + 2 pad, cols + 2 pad, 2) over the ids' span with ``pad`` lines of NaN round it,
+    NaN where a corner is missing, and the smallest col and row (at [pad, pad]). The first step of the
+    numba kernels that walk a board's lines, in one pass."""
+    lo_c, lo_r = ids[start, 0], ids[start, 1]
+    hi_c, hi_r = lo_c, lo_r
+    for i in range(start, end):
+        lo_c = min(lo_c, ids[i, 0])
+        lo_r = min(lo_r, ids[i, 1])
+        hi_c = max(hi_c, ids[i, 0])
+        hi_r = max(hi_r, ids[i, 1])
+    grid = np.full((hi_r - lo_r + 1 + 2 * pad, hi_c - lo_c + 1 + 2 * pad, 2), np.nan)
+    for i in range(start, end):
+        grid[ids[i, 1] - lo_r + pad, ids[i, 0] - lo_c + pad, 0] = xy[i, 0]
+        grid[ids[i, 1] - lo_r + pad, ids[i, 0] - lo_c + pad, 1] = xy[i, 1]
+    return grid, lo_c, lo_r
+
+
+@njit(cache=True, nogil=True)
 def _rim_layout(xy: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The rim corners' setup in one pass (its numpy calls cost more than the rim check they fed): for
     corners ``xy`` (N, 2) with ``ids`` (N, 2) int64 (col, row), the grid of _dense_grid, the indices (K,) of
@@ -190,20 +210,13 @@ def _rim_layout(xy: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray
     n = ids.shape[0]
     if n == 0:
         return np.full((0, 0, 2), np.nan), np.zeros(0, np.int64), np.zeros((0, 2), np.int64)
-    lo0, lo1, hi0, hi1 = ids[0, 0], ids[0, 1], ids[0, 0], ids[0, 1]
-    for i in range(1, n):
-        lo0 = min(lo0, ids[i, 0])
-        lo1 = min(lo1, ids[i, 1])
-        hi0 = max(hi0, ids[i, 0])
-        hi1 = max(hi1, ids[i, 1])
-    grid = np.full((hi1 - lo1 + 1, hi0 - lo0 + 1, 2), np.nan)
+    grid, lo0, lo1 = id_grid(xy, ids, 0, n, 0)
+    hi0, hi1 = lo0 + grid.shape[1] - 1, lo1 + grid.shape[0] - 1
     rim = np.zeros(n, np.bool_)
     k = 0
     for i in range(n):
         c = ids[i, 0]
         r = ids[i, 1]
-        grid[r - lo1, c - lo0, 0] = xy[i, 0]
-        grid[r - lo1, c - lo0, 1] = xy[i, 1]
         if c == lo0 or c == hi0 or r == lo1 or r == hi1:
             rim[i] = True
             k += 1
@@ -342,6 +355,7 @@ def _rim_prediction(grid: np.ndarray, at: np.ndarray) -> tuple[np.ndarray, np.nd
             out[i, 1] = sy / k
             check[i] = worst
     return out, check
+
 
 def _dense_grid(xy: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The grid's corners (rows, cols, 2) by (row, col) from its smallest ids ``lo`` (2,) on, NaN where
@@ -1073,17 +1087,7 @@ def _grid_line_angles(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """grid_line_angles in one pass (N >= 1 corners): per coordinate, the step between the neighbours ahead
     and behind, else to the one there is, else the line's axis (as the numpy expressions it replaced)."""
     n = xy.shape[0]
-    lo_c, lo_r = ids[0, 0], ids[0, 1]
-    hi_c, hi_r = lo_c, lo_r
-    for i in range(n):
-        lo_c = min(lo_c, ids[i, 0])
-        lo_r = min(lo_r, ids[i, 1])
-        hi_c = max(hi_c, ids[i, 0])
-        hi_r = max(hi_r, ids[i, 1])
-    padded = np.full((hi_r - lo_r + 3, hi_c - lo_c + 3, 2), np.nan)
-    for i in range(n):
-        padded[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 0] = xy[i, 0]
-        padded[ids[i, 1] - lo_r + 1, ids[i, 0] - lo_c + 1, 1] = xy[i, 1]
+    padded, lo_c, lo_r = id_grid(xy, ids, 0, n, 1)
     out = np.empty((n, 2))
     step = np.empty(2)
     for i in range(n):
