@@ -195,6 +195,23 @@ def dense_labels(grid: dict[tuple[int, int], np.ndarray], margin: int = 2) -> tu
     return dense, lo
 
 
+def _label_span(dense: np.ndarray, lo: np.ndarray) -> tuple[int, int, int, int]:
+    """The first and last labels (u0, v0, u1, v1) of a grid's dense_labels ``dense`` (margin 2) from ``lo``."""
+    u0, v0 = (int(c) for c in lo + 2)
+    u1, v1 = (int(c) for c in lo + np.array(dense.shape[:2]) - 3)
+    return u0, v0, u1, v1
+
+
+def _side_predictions(dense: np.ndarray, lo: np.ndarray, grow_u: bool, grow_v: bool
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The new outer lines of a grid's dense_labels ``dense`` (margin 2; label ``lo`` at [0, 0]): with
+    ``grow_u`` the two beyond its first and last u, with ``grow_v`` those beyond its v (_side_labels), each
+    point extrapolated along its own grid line (_extrapolate): (labels (K, 2), outward steps (K, 2),
+    points (K, 2), nearest-corner distances (K,), predicted (K,) bool)."""
+    labels, outward = _side_labels(*_label_span(dense, lo), grow_u, grow_v)
+    return (labels, outward, *_extrapolate(dense, int(lo[0]), int(lo[1]), labels, outward))
+
+
 def grid_arrays(grid: dict[tuple[int, int], np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """A grid's labels (N, 2) int64 and points (N, 2) float64, in the dict's order. (np.fromiter and
     np.concatenate: np.array of the lists of tuples and of points cost twice as much.)"""
@@ -403,8 +420,8 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     a corner there (thresholds relaxed further); the others (new rows outside a grid) must pass the probe
     properly, and are refined and probed only where a ring round them crosses dark/bright four times
     (ring_prefilter without its symmetry test). Either way the refinement must stay within 0.25 x spacing
-    of the prediction. ``window``: the
-    square size each refinement window is made for (subpixel.window_spacing), default ``spacing``.
+    of the prediction. ``window``: the square size each refinement window is made for
+    (subpixel.window_spacing), default ``spacing``.
     """
     if accepted is not None and len(accepted):
         d, j = nearest_of(np.ascontiguousarray(preds, np.float64), np.ascontiguousarray(accepted, np.float64))
@@ -593,11 +610,7 @@ def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarra
     squares beyond them alternate (squares_beyond_alternate). Where a board's outer squares are cut short or
     its margin is narrow, rings round the points beyond its border cross dark/bright four times too, but
     not point-symmetrically."""
-    dense, lo = dense_labels(grid)
-    u0, v0 = (int(c) for c in lo + 2)
-    u1, v1 = (int(c) for c in lo + np.array(dense.shape[:2]) - 3)
-    labels, outward = _side_labels(u0, v0, u1, v1, True, True)
-    pts, spacing, ok = _extrapolate(dense, int(lo[0]), int(lo[1]), labels, outward)
+    labels, outward, pts, spacing, ok = _side_predictions(*dense_labels(grid), True, True)
     pts = snap_to_saddle(smooth, np.ascontiguousarray(pts), 3)
     ok &= ring_prefilter(smooth, pts, probe_radii(spacing, params), 0.5 * params.min_contrast)
     # the four outward steps in np.unique's order (np.unique(outward, axis=0) cost more than the whole test;
@@ -628,8 +641,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
     hole_predictions = _HolePredictions()
     for _ in range(2 * max_dim + 2):
         dense, lo = dense_labels(grid)
-        u0, v0 = (int(c) for c in lo + 2)
-        u1, v1 = (int(c) for c in lo + np.array(dense.shape[:2]) - 3)
+        u0, v0, u1, v1 = _label_span(dense, lo)
         added = False
         # Holes: each from a homography of its own neighbourhood (lens distortion is local).
         holes = np.argwhere(~np.isfinite(dense[2:-2, 2:-2, 0])) + (u0, v0)
@@ -647,8 +659,7 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, g
             + ([(u1 - u0 + 1, (0, -1)), (u1 - u0 + 1, (0, 1))] if grow_v else [])
         groups: list[tuple[int, int, tuple[int, int] | None]] = [(len(keys), 0, None)]
         if sides:
-            side_labels, side_out = _side_labels(u0, v0, u1, v1, grow_u, grow_v)
-            side_p, side_s, side_ok = _extrapolate(dense, int(lo[0]), int(lo[1]), side_labels, side_out)
+            side_labels, _side_out, side_p, side_s, side_ok = _side_predictions(dense, lo, grow_u, grow_v)
             # the extrapolated points of all sides at once, cut where each side's labels start
             ok_at = np.flatnonzero(side_ok)
             cuts = np.searchsorted(ok_at, np.cumsum([0] + [length for length, _o in sides])).tolist()

@@ -43,7 +43,7 @@ from edgecal.detection.probe import (
     probe_radii,
     ring_prefilter_radii,
 )
-from edgecal.detection.subpixel import SEARCH_CRITERIA, nearest_spacing, refine_corners
+from edgecal.detection.subpixel import SEARCH_CRITERIA, id_grid, nearest_spacing, refine_corners
 from edgecal.detection.target_boards import (
     all_boards_found,
     boards_by_size,
@@ -303,12 +303,8 @@ def _longest_neighbour_step(corners: np.ndarray, ids: np.ndarray) -> float:
     """_largest_step's longest finite distance between corners (N, 2) whose ids (N, 2: col, row) are
     neighbours along a row or a column; -1 when there is none (one numba pass: its dozen numpy steps cost
     more than the distances)."""
-    cols = ids[:, 0].max() + 1
-    rows = ids[:, 1].max() + 1
-    dense = np.full((rows, cols, 2), np.nan)
-    for i in range(ids.shape[0]):
-        dense[ids[i, 1], ids[i, 0], 0] = corners[i, 0]
-        dense[ids[i, 1], ids[i, 0], 1] = corners[i, 1]
+    dense = id_grid(corners, ids, 0, ids.shape[0], 0)[0]
+    rows, cols = dense.shape[0], dense.shape[1]
     best = -1.0
     for r in range(rows):
         for c in range(cols):
