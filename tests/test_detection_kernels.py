@@ -12,9 +12,8 @@ import numpy as np
 
 from edgecal.detection.candidates import (
     _local_maxima,
-    _maxima_of_dilated,
-    _sparse_local_maxima,
     gradients,
+    gradients_near,
     min_eigen_image,
 )
 from edgecal.detection.completion import _predict_from_dense, _ring_offsets, dense_labels
@@ -31,19 +30,20 @@ def _maxima_reference(lam: np.ndarray, thr: float, b: int = 2) -> tuple[np.ndarr
     return np.stack([xs, ys], axis=1).astype(np.float64), lam[ys, xs]
 
 
-def test_local_maxima_both_passes_match_the_dilation_reference() -> None:
+def test_local_maxima_match_the_dilation_reference() -> None:
     rng = np.random.default_rng(3)
-    lam = rng.random((120, 170)).astype(np.float32)
-    lam[40:44, 50:55] = 2.0  # a plateau: every pixel of it is a maximum
-    for thr in (0.05, 0.5, 0.97, 1.5):  # from most pixels above (dense pass) to a few (sparse pass)
-        thr32 = float(np.float32(thr))
-        ref_pts, ref_resp = _maxima_reference(lam, thr32)
-        pts, resp = _local_maxima(lam, thr32, 2)
-        assert np.array_equal(pts, ref_pts) and np.array_equal(resp, ref_resp)
-        dense_pts, dense_resp = _maxima_of_dilated(lam, cv2.dilate(lam, np.ones((5, 5), np.uint8)), thr32, 2)
-        assert np.array_equal(dense_pts, ref_pts) and np.array_equal(dense_resp, ref_resp)
-        sparse_pts, sparse_resp, complete = _sparse_local_maxima(lam, thr32, 2, lam.size)
-        assert complete and np.array_equal(sparse_pts, ref_pts) and np.array_equal(sparse_resp, ref_resp)
+    for shape in ((120, 170), (5, 9), (6, 6), (4, 30), (37, 8)):  # widths on and off whole 8-byte words
+        lam = rng.random(shape).astype(np.float32)
+        if shape[0] > 50:
+            lam[40:44, 50:55] = 2.0  # a plateau: every pixel of it is a maximum
+            lam[:, 3] = 3.0  # maxima near the border (kept 2 px in) and along a whole column
+        for thr in (0.05, 0.5, 0.97, 1.5):  # from most pixels above to a few
+            thr32 = float(np.float32(thr))
+            for border in (2, 3):
+                ref_pts, ref_resp = _maxima_reference(lam, thr32, border)
+                pts, resp = _local_maxima(lam, thr32, border)
+                assert np.array_equal(pts, ref_pts) and np.array_equal(resp, ref_resp)
+                assert resp.dtype == np.float32
 
 
 def _strikes_reference(pts: np.ndarray, labels: np.ndarray, tolerance: float) -> np.ndarray:
@@ -87,6 +87,25 @@ def test_min_eigen_image_repeats_opencvs_box_sums_with_an_exact_root() -> None:
         assert lam.dtype == np.float32 and np.array_equal(lam, (a * half + c * half) - root)
         opencv = cv2.subtract(cv2.addWeighted(a, 0.5, c, 0.5, 0.0), cv2.magnitude(d, b))
         assert np.abs(lam - opencv).max() <= 1e-5 * np.abs(opencv).max()
+
+
+def test_gradients_near_points_are_the_whole_images_gradients_there() -> None:
+    # discs at the borders and corners of the image too, where Sobel mirrors the image (BORDER_REFLECT_101)
+    rng = np.random.default_rng(11)
+    smooth = cv2.GaussianBlur((255 * rng.random((90, 130))).astype(np.float32), (5, 5), 1.0)
+    pts = np.array([[0.0, 0.0], [129.6, 89.7], [0.4, 50.0], [64.2, 44.9], [120.0, 1.0], [64.0, 46.0]])
+    reach = np.array([3.0, 5.5, 2.0, 9.0, 4.0, 0.5])
+    gx, gy = gradients(smooth)
+    near_x, near_y = gradients_near(smooth, pts, reach)
+    yy, xx = np.mgrid[0:90, 0:130]
+    inside = np.zeros(smooth.shape, bool)
+    for (x, y), r in zip(pts, reach):
+        inside |= np.hypot(xx - x, yy - y) <= r + 1.0  # what a probe of radius r reads (bilinear cells)
+    scale = np.abs(gx).max()
+    assert np.abs(near_x - gx)[inside].max() <= 1e-6 * scale and np.abs(near_y - gy)[inside].max() <= 1e-6 * scale
+    # beyond each point's box (reach + 2 px each way) nothing is computed
+    far = np.all(np.hypot(xx[..., None] - pts[:, 0], yy[..., None] - pts[:, 1]) > np.sqrt(2.0) * (reach + 3.0), axis=2)
+    assert np.all(near_x[far] == 0.0) and np.all(near_y[far] == 0.0)
 
 
 def test_cross_ratio_strikes_match_the_reference() -> None:

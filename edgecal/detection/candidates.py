@@ -33,6 +33,54 @@ def gradients(smooth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
+def gradients_near(smooth: np.ndarray, pts: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """gradients() only within ``reach`` (M,) px (and a pixel more) of each point (M, 2) x, y; zero elsewhere.
+
+    For a window whose whole gradient images would only be sampled round its corners (the corner quality's
+    probe, reach = its radius + 1): at large squares those discs are a few percent of the window, where the
+    two whole-image Sobels cost ~0.8 ms at 1280x960. Equal to gradients() to float32 rounding.
+    """
+    gx = np.zeros(smooth.shape, np.float32)  # (numpy's zeros: pages untouched outside the discs stay unmapped)
+    gy = np.zeros(smooth.shape, np.float32)
+    _sobel_boxes(np.ascontiguousarray(smooth, np.float32), np.ascontiguousarray(pts, np.float64),
+                 np.ascontiguousarray(reach, np.float64), gx, gy)
+    return gx, gy
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _reflect_101(i: int, n: int) -> int:
+    """Index i of a line of n pixels mirrored at its ends without repeating them (cv2.BORDER_REFLECT_101)."""
+    if i < 0:
+        return -i if n > 1 else 0
+    if i >= n:
+        return 2 * n - 2 - i if n > 1 else 0
+    return i
+
+
+@njit(cache=True, nogil=True)
+def _sobel_boxes(smooth: np.ndarray, pts: np.ndarray, reach: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> None:
+    """gradients_near's kernel: the 3x3 Sobel / 8 of ``smooth`` into gx, gy over each point's box (boxes that
+    overlap are computed again: the same values)."""
+    h, w = smooth.shape
+    eighth = np.float32(0.125)
+    two = np.float32(2.0)
+    for i in range(pts.shape[0]):
+        r = reach[i] + 1.0
+        x0 = max(0, int(math.floor(pts[i, 0] - r)))
+        x1 = min(w - 1, int(math.floor(pts[i, 0] + r)) + 1)
+        y0 = max(0, int(math.floor(pts[i, 1] - r)))
+        y1 = min(h - 1, int(math.floor(pts[i, 1] + r)) + 1)
+        for y in range(y0, y1 + 1):
+            up = smooth[_reflect_101(y - 1, h)]
+            mid = smooth[y]
+            down = smooth[_reflect_101(y + 1, h)]
+            for x in range(x0, x1 + 1):
+                xl = _reflect_101(x - 1, w)
+                xr = _reflect_101(x + 1, w)
+                gx[y, x] = ((up[xr] - up[xl]) + two * (mid[xr] - mid[xl]) + (down[xr] - down[xl])) * eighth
+                gy[y, x] = ((down[xl] + two * down[x] + down[xr]) - (up[xl] + two * up[x] + up[xr])) * eighth
+
+
 def prepare_image(grey: np.ndarray, sigma: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Smoothed float32 image and its x/y gradients (see smooth_image and gradients)."""
     smooth = smooth_image(grey, sigma)
@@ -130,43 +178,79 @@ def _min_eigen_3x3(gx: np.ndarray, gy: np.ndarray) -> np.ndarray:
     return lam
 
 
-# Share of pixels above the candidate threshold up to which each one's 5x5 neighbourhood is looked at in
-# one numba pass; beyond it (a noisy image at half resolution has half its pixels above) OpenCV's
-# vectorised dilation of the whole image is cheaper. Both give the same points.
-_SPARSE_MAXIMA_SHARE = 0.1
-
-
 def _local_maxima(lam: np.ndarray, thr: float, border: int) -> tuple[np.ndarray, np.ndarray]:
-    """5x5 local maxima of ``lam`` above ``thr`` (float32 value), away from the border: (points (M, 2) x, y;
-    responses), in row-major order. A plateau gives several points a pixel apart; the detector's
+    """5x5 local maxima of ``lam`` above ``thr`` (float32 value), away from the border (at least 2 px): (points
+    (M, 2) x, y; responses), in row-major order. A pixel is kept when nothing in its 5x5 neighbourhood is
+    larger (cv2.dilate's maximum): a plateau gives several points a pixel apart; the detector's
     de-duplication keeps one."""
-    max_above = int(_SPARSE_MAXIMA_SHARE * lam.size)
-    # A sparse sample says when most pixels are above (a noisy image at half resolution): the sparse pass
-    # would only give up there after reading a good part of the image.
-    if _share_above(lam, thr, _SHARE_SAMPLE_STRIDE) <= _SPARSE_MAXIMA_SHARE:
-        pts, resp, complete = _sparse_local_maxima(lam, thr, border, max_above)
-        if complete:
-            return pts, resp
-    dil = cv2.dilate(lam, np.ones((5, 5), np.uint8))
-    return _maxima_of_dilated(lam, dil, thr, max(border, 2))
-
-
-# Every this many rows and columns, the pixels whose share above the candidate threshold picks the pass.
-_SHARE_SAMPLE_STRIDE = 8
+    return _maxima_5x5(np.ascontiguousarray(lam, np.float32), thr, border)
 
 
 @njit(cache=True, nogil=True)
-def _share_above(lam: np.ndarray, thr: float, stride: int) -> float:
-    """Share of every ``stride``-th pixel (in both directions) of ``lam`` above ``thr``."""
+def _maxima_5x5(lam: np.ndarray, thr: float, border: int) -> tuple[np.ndarray, np.ndarray]:
+    """_local_maxima of a C-contiguous float32 ``lam``, in one pass over its rows.
+
+    The 5x5 maximum is separable: each row's 5-wide maxima go into a ring of the last five rows, whose
+    column-wise maximum a row's pixels are compared with, in loops the compiler vectorises (no index may
+    be negative: numba's wrap-around check keeps a loop scalar). The few pixels that pass are collected
+    eight flags at a time. ~3x faster than OpenCV's dilation and a comparison pass, and than looking at
+    the neighbourhood of each pixel above the threshold (any share of them: noisy images have half).
+    """
     h, w = lam.shape
+    b = max(border, 2)
+    # room for every pixel (only the maxima's entries are written): no growing inside the loop, which
+    # numba compiles into a loop several times slower
+    xs = np.empty(h * w + 1, np.int64)
+    ys = np.empty(h * w + 1, np.int64)
     n = 0
-    above = 0
-    for y in range(0, h, stride):
-        for x in range(0, w, stride):
-            n += 1
-            if lam[y, x] > thr:
-                above += 1
-    return above / n if n else 0.0
+    if h - b <= b or w - b <= b:
+        return _gathered(lam, xs, ys, n)
+    ring = np.empty((5, w), np.float32)  # row y's 5-wide maxima in ring[y % 5] (entries 2 .. w - 3)
+    column_max = np.empty(w, np.float32)
+    flags = np.zeros(8 * ((w + 7) // 8), np.uint8)  # whole 8-byte words
+    words = flags.view(np.uint64)
+    thr32 = np.float32(thr)
+    for y in range(b - 2, b + 2):
+        _row_max_5(lam[y], ring[y % 5])
+    for y in range(b, h - b):
+        _row_max_5(lam[y + 2], ring[(y + 2) % 5])
+        _column_max_5(ring, column_max)
+        row = lam[y]
+        for x in range(w):
+            v = row[x]
+            flags[x] = (v > thr32) & (v >= column_max[x])
+        for k in range(words.shape[0]):
+            if words[k] == 0:
+                continue
+            for x in range(max(8 * k, b), min(8 * k + 8, w - b)):
+                if flags[x]:
+                    xs[n] = x
+                    ys[n] = y
+                    n += 1
+    return _gathered(lam, xs, ys, n)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _max_5(a: float, b: float, c: float, d: float, e: float) -> float:
+    """The largest of five values, as selects the compiler vectorises."""
+    a = a if a > b else b
+    c = c if c > d else d
+    a = a if a > c else c
+    return a if a > e else e
+
+
+@njit(cache=True, nogil=True)
+def _row_max_5(row: np.ndarray, out: np.ndarray) -> None:
+    """out[x] = the largest of row[x - 2 .. x + 2], for x in 2 .. len - 3."""
+    for x in range(row.shape[0] - 4):
+        out[x + 2] = _max_5(row[x], row[x + 1], row[x + 2], row[x + 3], row[x + 4])
+
+
+@njit(cache=True, nogil=True)
+def _column_max_5(ring: np.ndarray, out: np.ndarray) -> None:
+    """out[x] = the largest of the five rows of ``ring`` at x."""
+    for x in range(out.shape[0]):
+        out[x] = _max_5(ring[0, x], ring[1, x], ring[2, x], ring[3, x], ring[4, x])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -179,81 +263,6 @@ def _gathered(lam: np.ndarray, xs: np.ndarray, ys: np.ndarray, n: int) -> tuple[
         pts[k, 1] = ys[k]
         resp[k] = lam[ys[k], xs[k]]
     return pts, resp
-
-
-@njit(cache=True, nogil=True)
-def _maxima_of_dilated(lam: np.ndarray, dil: np.ndarray, thr: float, b: int) -> tuple[np.ndarray, np.ndarray]:
-    """The pixels at least ``b`` from the border where ``lam`` is above ``thr`` and equals its 5x5 dilation
-    ``dil``, row-major: (points (M, 2) x, y; responses), in one pass (the masks, np.nonzero and gathers of
-    the whole image cost ~3x as much)."""
-    h, w = lam.shape
-    # room for every pixel (only the maxima's entries are written): no growing inside the loop, which
-    # numba compiles into a loop several times slower
-    xs = np.empty(h * w + 1, np.int64)
-    ys = np.empty(h * w + 1, np.int64)
-    n = 0
-    for y in range(b, h - b):
-        row = lam[y]
-        drow = dil[y]
-        for x in range(b, w - b):
-            v = row[x]
-            # written at every pixel and kept by advancing n: no branch to mispredict on a noisy image
-            xs[n] = x
-            ys[n] = y
-            n += (v > thr) & (v >= drow[x])
-    return _gathered(lam, xs, ys, n)
-
-
-@njit(cache=True, nogil=True)
-def _sparse_local_maxima(lam: np.ndarray, thr: float, border: int, max_above: int
-                         ) -> tuple[np.ndarray, np.ndarray, bool]:
-    """_local_maxima for an image with few pixels above ``thr``: only those look at their 5x5 neighbourhood
-    (a pixel is kept when nothing there is larger), so one pass costs little more than reading the image,
-    where the dilation, comparison and np.nonzero of the whole image cost ~2 ms at 1280x800.
-
-    Gives up once more than ``max_above`` pixels are above ``thr`` (returns complete=False): the dilation
-    is cheaper then. Counting as it goes spares a pass over the image that only counts.
-    """
-    h, w = lam.shape
-    b = max(border, 2)
-    n = 0
-    above = 0
-    cap = 1024
-    xs = np.empty(cap, np.int64)
-    ys = np.empty(cap, np.int64)
-    for y in range(b, h - b):
-        row = lam[y]
-        for x in range(b, w - b):
-            v = row[x]
-            if not v > thr:
-                continue
-            above += 1
-            if above > max_above:
-                return np.empty((0, 2)), np.empty(0, np.float32), False
-            # its own row first (most pixels above the threshold have a larger neighbour there), then
-            # the others, each left at the first larger value
-            if row[x - 1] > v or row[x + 1] > v or row[x - 2] > v or row[x + 2] > v:
-                continue
-            ok = True
-            for yy in (y - 1, y + 1, y - 2, y + 2):
-                near = lam[yy]
-                if near[x - 2] > v or near[x - 1] > v or near[x] > v or near[x + 1] > v or near[x + 2] > v:
-                    ok = False
-                    break
-            if ok:
-                if n == cap:
-                    cap *= 2
-                    grown_x = np.empty(cap, np.int64)
-                    grown_y = np.empty(cap, np.int64)
-                    grown_x[:n] = xs[:n]
-                    grown_y[:n] = ys[:n]
-                    xs = grown_x
-                    ys = grown_y
-                xs[n] = x
-                ys[n] = y
-                n += 1
-    pts, resp = _gathered(lam, xs, ys, n)
-    return pts, resp, True
 
 
 @lru_cache(maxsize=64)

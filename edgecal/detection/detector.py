@@ -442,8 +442,11 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
 
 def _corner_quality(level: Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
-    _ok, _dirs, meas = _probe(level.smooth, level.gx, level.gy, xy, probe_radii(nearest_spacing(xy), p), p,
-                              max(16, p.probe_angles // 2))
+    radii = probe_radii(nearest_spacing(xy), p)
+    # (the probe reads the gradients within its radius + 1 px: a window that only refines a board needs
+    # them nowhere else)
+    gx, gy = level.gradients_near(xy, np.maximum(radii, p.probe_inner_radius_px) + 1.0)
+    _ok, _dirs, meas = _probe(level.smooth, gx, gy, xy, radii, p, max(16, p.probe_angles // 2))
     return probe_quality(meas, p)
 
 

@@ -6,11 +6,16 @@ import math
 
 import numpy as np
 
-from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
+from edgecal.detection.candidates import estimate_noise_sigma, gradients, gradients_near, smooth_image, smoothing_sigma
 
 # The window's left edge on a multiple of this many pixels: OpenCV's vectorised filters then round every
 # pixel as they do on the whole image (a start off the vector grid moves pixels between vector and scalar code).
 _WINDOW_ALIGN_PX = 32
+
+
+# Share of a level's pixels up to which Level.gradients_near computes the gradients round the points only
+# (beyond it the whole images' vectorised Sobels are about as cheap and are kept for later use).
+_NEAR_SHARE = 0.25
 
 
 class Level:
@@ -42,6 +47,14 @@ class Level:
     def gy(self) -> np.ndarray:
         """y gradient of the smoothed image (computed on first use)."""
         return self._grads()[1]
+
+    def gradients_near(self, pts: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The x/y gradients wherever they are read within ``reach`` (M,) px of points (M, 2): the level's
+        whole gradient images once they are made, else only those discs (candidates.gradients_near), which
+        is cheaper when they cover little of the level (a window that only refines a board's corners)."""
+        if self._gradients is not None or np.pi * float(np.sum((reach + 2.0) ** 2)) > _NEAR_SHARE * self.smooth.size:
+            return self._grads()
+        return gradients_near(self.smooth, pts, reach)
 
     def _grads(self) -> tuple[np.ndarray, np.ndarray]:
         if self._gradients is None:
