@@ -18,6 +18,7 @@ from edgecal.detection.candidates import (
 )
 from edgecal.detection.completion import _predict_from_dense, _ring_offsets, dense_labels
 from edgecal.detection.grouping import CROSS_RATIO_EQUAL_STEPS, cross_ratio_strikes
+from edgecal.detection.levels import Level
 from edgecal.detection.subpixel import SEARCH_CRITERIA, refine_corners, subpixel_window
 
 
@@ -106,6 +107,20 @@ def test_gradients_near_points_are_the_whole_images_gradients_there() -> None:
     # beyond each point's box (reach + 2 px each way) nothing is computed
     far = np.all(np.hypot(xx[..., None] - pts[:, 0], yy[..., None] - pts[:, 1]) > np.sqrt(2.0) * (reach + 3.0), axis=2)
     assert np.all(near_x[far] == 0.0) and np.all(near_y[far] == 0.0)
+
+
+def test_a_level_gives_its_whole_gradients_once_made_else_the_discs_only() -> None:
+    rng = np.random.default_rng(12)
+    level = Level((255 * rng.random((120, 160))).astype(np.uint8), 2.0)
+    pts, reach = np.array([[40.0, 50.0], [120.5, 60.5]]), np.array([6.0, 6.0])
+    near_x, near_y = level.gradients_near(pts, reach)
+    assert near_x[50, 40] != 0.0 and near_x[5, 5] == 0.0 and near_y[110, 150] == 0.0
+    assert np.abs(near_x[44:57, 34:47] - level.gx[44:57, 34:47]).max() <= 1e-6 * np.abs(level.gx).max()
+    whole_x, whole_y = level.gradients_near(pts, reach)  # now made: the level's own images
+    assert whole_x is level.gx and whole_y is level.gy
+    # discs covering most of a level: the whole images straight away
+    fresh = Level(level.grey, 2.0)
+    assert fresh.gradients_near(pts, np.array([60.0, 60.0]))[0] is fresh.gx
 
 
 def test_cross_ratio_strikes_match_the_reference() -> None:

@@ -16,6 +16,7 @@ import numpy as np
 from numba import njit
 
 from edgecal.detection.candidates import snap_to_saddle
+from edgecal.detection.levels import Level
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import (
     EDGE_ACROSS_RAY,
@@ -26,6 +27,7 @@ from edgecal.detection.probe import (
     probe_candidates,
     probe_quality,
     probe_radii,
+    probe_reach,
     ring_prefilter,
 )
 from edgecal.detection.subpixel import FINAL_CRITERIA, SEARCH_CRITERIA, nearest_of, refine_corners
@@ -407,9 +409,8 @@ def trim_false_edges(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray
     return grid
 
 
-def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds: np.ndarray,
-                       spacing: np.ndarray, params: DetectorParams, pinned: np.ndarray,
-                       accepted: np.ndarray | None = None, criteria: tuple = FINAL_CRITERIA,
+def verify_predictions(level: Level, preds: np.ndarray, spacing: np.ndarray, params: DetectorParams,
+                       pinned: np.ndarray, accepted: np.ndarray | None = None, criteria: tuple = FINAL_CRITERIA,
                        window: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Refine predicted corners and keep those the probe confirms near their prediction.
 
@@ -421,8 +422,10 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     properly, and are refined and probed only where a ring round them crosses dark/bright four times
     (ring_prefilter without its symmetry test). Either way the refinement must stay within 0.25 x spacing
     of the prediction. ``window``: the square size each refinement window is made for
-    (subpixel.window_spacing), default ``spacing``.
+    (subpixel.window_spacing), default ``spacing``. The probe reads ``level``'s gradients round the refined
+    points only (Level.gradients_near).
     """
+    smooth = level.smooth
     if accepted is not None and len(accepted):
         d, j = nearest_of(np.ascontiguousarray(preds, np.float64), np.ascontiguousarray(accepted, np.float64))
         snap = d < 0.4 * spacing
@@ -441,6 +444,7 @@ def verify_predictions(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, preds
     if inside.any():
         sizes = spacing if window is None else window
         refined[inside] = refine_corners(smooth, preds[inside], sizes[inside], criteria=criteria)
+        gx, gy = level.gradients_near(refined[inside], probe_reach(radii[inside], params))
         ok[inside], _dirs, meas[inside] = probe_candidates(
             gx, gy, smooth, np.ascontiguousarray(refined[inside]), np.ascontiguousarray(radii[inside]),
             params.probe_angles, params.probe_inner_radius_px, EDGE_ACROSS_RAY,
@@ -565,9 +569,8 @@ class _VerifiedPredictions:
     bench/live.py's hard frames about 40 % of the predictions, and the whole last round).
     """
 
-    def __init__(self, smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, params: DetectorParams,
-                 accepted: np.ndarray | None, criteria: tuple) -> None:
-        self._args = (smooth, gx, gy)
+    def __init__(self, level: Level, params: DetectorParams, accepted: np.ndarray | None, criteria: tuple) -> None:
+        self._level = level
         self._params = params
         self._accepted = accepted
         self._criteria = criteria
@@ -591,7 +594,7 @@ class _VerifiedPredictions:
             rows.append(row)
         if new:
             sel = np.array(new)
-            refined, good, _quality = verify_predictions(*self._args, preds[sel], spacing[sel], self._params,
+            refined, good, _quality = verify_predictions(self._level, preds[sel], spacing[sel], self._params,
                                                          pinned[sel], self._accepted, self._criteria)
             if n == 0 and len(new) == len(keys):
                 self._refined, self._good = refined, good
@@ -628,16 +631,17 @@ def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarra
     return False
 
 
-def complete_grid(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarray, gx: np.ndarray,
-                  gy: np.ndarray, max_dim: int, params: DetectorParams,
+def complete_grid(grid: dict[tuple[int, int], np.ndarray], level: Level, max_dim: int, params: DetectorParams,
                   accepted: np.ndarray | None = None) -> dict[tuple[int, int], np.ndarray]:
-    """Fill holes and grow the grid at its sides (up to ``max_dim`` labels per axis); returns a new dict.
+    """Fill holes and grow the grid at its sides (up to ``max_dim`` labels per axis) on ``level``; returns a
+    new dict.
 
     ``accepted``: points the probe accepted on this level, tried first at every predicted position.
     """
     grid = dict(grid)
+    smooth = level.smooth
     # the grid's corners get their final refinement once the board is known (SEARCH_CRITERIA here)
-    verified = _VerifiedPredictions(smooth, gx, gy, params, accepted, SEARCH_CRITERIA)
+    verified = _VerifiedPredictions(level, params, accepted, SEARCH_CRITERIA)
     hole_predictions = _HolePredictions()
     for _ in range(2 * max_dim + 2):
         dense, lo = dense_labels(grid)

@@ -41,6 +41,7 @@ from edgecal.detection.probe import (
     probe_candidates,
     probe_quality,
     probe_radii,
+    probe_reach,
     ring_prefilter_radii,
 )
 from edgecal.detection.subpixel import SEARCH_CRITERIA, id_grid, nearest_spacing, refine_corners
@@ -281,8 +282,8 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
         if not grid_is_regular(xy, det.ids, det.grid[0], det.grid[1], 2 * p.cross_ratio_tolerance):
             return None
         # Half resolution can miss a line of small corners beyond the board: a sub-grid must not pass.
-        if grows and len(complete_grid(dict(zip(map(tuple, det.ids.tolist()), xy)), level.smooth, level.gx,
-                                       level.gy, GRID_GROWTH_MAX_DIM, p)) > len(xy):
+        if grows and len(complete_grid(dict(zip(map(tuple, det.ids.tolist()), xy)), level, GRID_GROWTH_MAX_DIM,
+                                       p)) > len(xy):
             return None
         xy, det.xjunction_fitted, det.bend_px, det.xjunction_noise = polish_corners(level.grey, level.smooth, xy,
                                                                                    det.ids, p)
@@ -400,7 +401,7 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
         full_board = is_full_board(grid, by_size)
         if (len(grid) >= max(p.min_grid_corners, 0.3 * min_corners) or full_board) \
                 and not (provisional and full_board):
-            grid = complete_grid(grid, smooth, level.gx, level.gy, GRID_GROWTH_MAX_DIM, p, debug.accepted)
+            grid = complete_grid(grid, level, GRID_GROWTH_MAX_DIM, p, debug.accepted)
         if len(grid) >= p.min_grid_corners:
             finished.append(grid)
     # Larger grids first, so that a full board wins its name over a fragment.
@@ -443,9 +444,8 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
 def _corner_quality(level: Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
     """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
     radii = probe_radii(nearest_spacing(xy), p)
-    # (the probe reads the gradients within its radius + 1 px: a window that only refines a board needs
-    # them nowhere else)
-    gx, gy = level.gradients_near(xy, np.maximum(radii, p.probe_inner_radius_px) + 1.0)
+    # (a window that only refines a board needs its gradients nowhere else)
+    gx, gy = level.gradients_near(xy, probe_reach(radii, p))
     _ok, _dirs, meas = _probe(level.smooth, gx, gy, xy, radii, p, max(16, p.probe_angles // 2))
     return probe_quality(meas, p)
 

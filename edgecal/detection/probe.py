@@ -485,6 +485,12 @@ def probe_radii(spacing: np.ndarray, params: DetectorParams) -> np.ndarray:
                                  params.probe_radius_min_px), params.probe_radius_max_px)
 
 
+def probe_reach(radii: np.ndarray, params: DetectorParams) -> np.ndarray:
+    """How far (px) from its centre a probe of each radius reads the gradient images: its rays' ends and the
+    bilinear cells round them (see Level.gradients_near)."""
+    return np.maximum(radii, params.probe_inner_radius_px) + 1.0
+
+
 def probe_quality(measures: np.ndarray, params: DetectorParams) -> np.ndarray:
     """Per point in [0, 1]: how cleanly the probe saw a chessboard corner (angle error x contrast, each
     scaled to its threshold in ``params``); 1 is a clean, contrasty saddle."""

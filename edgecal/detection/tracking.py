@@ -27,10 +27,11 @@ import cv2
 import numpy as np
 
 from edgecal.detection.board_corners import polish_corners
-from edgecal.detection.candidates import estimate_noise_sigma, gradients, smooth_image, smoothing_sigma
+from edgecal.detection.candidates import estimate_noise_sigma
 from edgecal.detection.completion import verify_predictions
 from edgecal.detection.corner_covariance import add_board_covariances, covariance_noise_sigma
 from edgecal.detection.detector import WINDOW_MARGIN_PX, detect
+from edgecal.detection.levels import Level
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.probe import probe_radii
 from edgecal.detection.subpixel import (
@@ -188,9 +189,8 @@ def _keep_following(predicted: np.ndarray, refined: np.ndarray, good: np.ndarray
     return M
 
 
-def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: list[np.ndarray],
-                   spacing: list[np.ndarray], p: DetectorParams, pinned: bool, rim_window: bool = False
-                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _verify_boards(level: Level, points: list[np.ndarray], spacing: list[np.ndarray], p: DetectorParams,
+                   pinned: bool, rim_window: bool = False) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """verify_predictions over the points of several boards in one call; (refined, good, quality) per board.
     ``rim_window``: the points lie on their boards' rims and are refined with the rim's window."""
     if not sum(len(x) for x in points):
@@ -198,7 +198,7 @@ def _verify_boards(smooth: np.ndarray, gx: np.ndarray, gy: np.ndarray, points: l
     cat = np.ascontiguousarray(np.concatenate(points))
     sizes = np.concatenate(spacing)
     window = window_spacing(sizes, np.ones(len(sizes), dtype=bool)) if rim_window else None
-    refined, good, quality = verify_predictions(smooth, gx, gy, cat, sizes, p, np.full(len(cat), pinned),
+    refined, good, quality = verify_predictions(level, cat, sizes, p, np.full(len(cat), pinned),
                                                 window=window)
     bounds = np.cumsum([0] + [len(x) for x in points])
     return [(refined[i:j], good[i:j], quality[i:j]) for i, j in zip(bounds[:-1], bounds[1:])]
@@ -259,14 +259,13 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
         return TrackedBoards([])
     crop = grey[y0:y1, x0:x1]
     # Noise from every 6th pixel: the crop around a robot's boards still gives thousands of samples.
-    sigma = smoothing_sigma(estimate_noise_sigma(crop, stride=6))
-    smooth = smooth_image(crop, sigma)
-    gx, gy = gradients(smooth)
+    level = Level(crop, estimate_noise_sigma(crop, stride=6))
+    smooth, sigma = level.smooth, level.smoothing_sigma
     offset = np.array([x0, y0], dtype=np.float64)
 
     local = [np.ascontiguousarray(pr.xy - offset) for pr in predictions]
     # Pass 1: every prediction as it is, all boards in one call.
-    results = [list(r) for r in _verify_boards(smooth, gx, gy, local, spacing, p, True)]
+    results = [list(r) for r in _verify_boards(level, local, spacing, p, True)]
     motions = [_keep_following(pred, res[0], res[1]) for pred, res in zip(local, results)]
     # each board's motion fitted to its corners as last confirmed (passes 2 and 3 refit it)
     last_motions = list(motions)
@@ -276,7 +275,7 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     missed = [np.nonzero(~results[k][1])[0] for k in retry]
     # retry holds only boards with a motion
     moved = [local[k][m] @ motions[k][:, :2].T + motions[k][:, 2] for k, m in zip(retry, missed)]  # type: ignore[index]
-    again_all = _verify_boards(smooth, gx, gy, moved, [spacing[k][m] for k, m in zip(retry, missed)], p, True)
+    again_all = _verify_boards(level, moved, [spacing[k][m] for k, m in zip(retry, missed)], p, True)
     for k, m, again in zip(retry, missed, again_all):
         for part in range(3):
             results[k][part][m] = again[part]
@@ -287,7 +286,7 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
                   for pr, res in zip(predictions, results)]
     starts = [(local[k] if motions[k] is None else local[k] @ motions[k][:, :2].T + motions[k][:, 2])[m]  # type: ignore[index]
               for k, m in enumerate(rim_missed)]
-    rim_again = _verify_boards(smooth, gx, gy, starts, [spacing[k][m] for k, m in enumerate(rim_missed)], p, True,
+    rim_again = _verify_boards(level, starts, [spacing[k][m] for k, m in enumerate(rim_missed)], p, True,
                                rim_window=True)
     for k, (m, again) in enumerate(zip(rim_missed, rim_again)):
         if len(m):
@@ -308,7 +307,7 @@ def verify_boards(image: np.ndarray, predictions: Sequence[CornerPrediction],
     # size, a ring of 0.3 squares: beyond the outer corners lie the margin and, a third of a square
     # further, whatever the board is glued on - a full-size ring could see four sectors alternate there).
     beyond = [beyond_border(ids, xy, pr.board.cols, pr.board.rows) for pr, ids, xy, _q, _s, _sp in kept]
-    checks = _verify_boards(smooth, gx, gy, [b[0] for b in beyond],
+    checks = _verify_boards(level, [b[0] for b in beyond],
                             [np.full(len(b[0]), 0.5 * k[4]) for b, k in zip(beyond, kept)], p, False)
     found, windows = [], []
     for (pr, ids, xy, quality, _s, sp), (_pts, sides), (_r, corner, _q) in zip(kept, beyond, checks):
