@@ -47,6 +47,7 @@ STAGES = (
     ("edgecal.detection.levels", "estimate_noise_sigma", "noise"),
     ("edgecal.detection.levels", "smooth_image", "smooth"),
     ("edgecal.detection.levels", "gradients", "gradients"),
+    ("edgecal.detection.levels", "gradients_near", "gradients"),
     ("edgecal.detection.detector", "min_eigen_candidates", "candidates"),
     ("edgecal.detection.detector", "snap_to_saddle", "snap"),
     ("edgecal.detection.detector", "dedupe_in_order", "dedupe"),
