@@ -115,8 +115,13 @@ def test_a_level_gives_its_whole_gradients_once_made_else_the_discs_only() -> No
     pts, reach = np.array([[40.0, 50.0], [120.5, 60.5]]), np.array([6.0, 6.0])
     near_x, near_y = level.gradients_near(pts, reach)
     assert near_x[50, 40] != 0.0 and near_x[5, 5] == 0.0 and near_y[110, 150] == 0.0
-    assert np.abs(near_x[44:57, 34:47] - level.gx[44:57, 34:47]).max() <= 1e-6 * np.abs(level.gx).max()
-    whole_x, whole_y = level.gradients_near(pts, reach)  # now made: the level's own images
+    whole = gradients(level.smooth)[0]
+    assert np.abs(near_x[44:57, 34:47] - whole[44:57, 34:47]).max() <= 1e-6 * np.abs(whole).max()
+    # a later call's discs go into the same images, the earlier ones kept
+    more_x, _more_y = level.gradients_near(np.array([[80.0, 20.0]]), np.array([5.0]))
+    assert more_x is near_x and near_x[50, 40] != 0.0 and near_x[20, 80] != 0.0
+    assert level.gx is not None  # (the whole images made)
+    whole_x, whole_y = level.gradients_near(pts, reach)  # now: the level's own images
     assert whole_x is level.gx and whole_y is level.gy
     # discs covering most of a level: the whole images straight away
     fresh = Level(level.grey, 2.0)

@@ -13,7 +13,7 @@ from edgecal.detection.candidates import estimate_noise_sigma, gradients, gradie
 _WINDOW_ALIGN_PX = 32
 
 
-# Share of a level's pixels (the discs' summed areas) up to which Level.gradients_near computes the
+# Share of a level's pixels (the discs' summed areas, over all calls) up to which Level.gradients_near computes the
 # gradients round the points only: 2-3x cheaper than the whole images' Sobels at a share of 0.1-0.4, as
 # cheap at ~0.7 (54 discs on 640x480), where the whole images are made and kept for later use.
 _NEAR_SHARE = 0.5
@@ -38,6 +38,11 @@ class Level:
         self.smoothing_sigma = smoothing_sigma(self.noise_sigma if smoothing_noise is None else smoothing_noise)
         self.smooth = smooth_image(grey, self.smoothing_sigma)
         self._gradients: tuple[np.ndarray, np.ndarray] | None = None
+        # gradients_near's images and the discs' summed area so far: one pair per level, not per call (a
+        # window round several boards is asked once per board and check, and each fresh pair cost more
+        # than its discs)
+        self._near: tuple[np.ndarray, np.ndarray] | None = None
+        self._near_area = 0.0
 
     @property
     def gx(self) -> np.ndarray:
@@ -52,10 +57,15 @@ class Level:
     def gradients_near(self, pts: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The x/y gradients wherever they are read within ``reach`` (M,) px of points (M, 2): the level's
         whole gradient images once they are made, else only those discs (candidates.gradients_near), which
-        is cheaper when they cover little of the level (a window that only refines a board's corners)."""
-        if self._gradients is not None or np.pi * float(np.sum((reach + 2.0) ** 2)) > _NEAR_SHARE * self.smooth.size:
-            return self._grads()
-        return gradients_near(self.smooth, pts, reach)
+        is cheaper when they cover little of the level (a window that only refines a board's corners). The
+        discs of every call go into one pair of images, until together they cover _NEAR_SHARE of the level."""
+        if self._gradients is None:
+            area = self._near_area + np.pi * float(np.sum((reach + 2.0) ** 2))
+            if area <= _NEAR_SHARE * self.smooth.size:
+                self._near_area = area
+                self._near = gradients_near(self.smooth, pts, reach, self._near)
+                return self._near
+        return self._grads()
 
     def _grads(self) -> tuple[np.ndarray, np.ndarray]:
         if self._gradients is None:
