@@ -63,14 +63,24 @@ def _reflect_101(i: int, n: int) -> int:
     return i
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _sobel_at(up: np.ndarray, mid: np.ndarray, down: np.ndarray, left: int, centre: int, right: int
+              ) -> tuple[float, float]:
+    """The 3x3 Sobel / 8 (x, y) at column ``centre`` of three rows, from its ``left`` and ``right`` columns."""
+    two = np.float32(2.0)
+    eighth = np.float32(0.125)
+    gx = ((up[right] - up[left]) + two * (mid[right] - mid[left]) + (down[right] - down[left])) * eighth
+    gy = ((down[left] + two * down[centre] + down[right]) - (up[left] + two * up[centre] + up[right])) * eighth
+    return gx, gy
+
+
 @njit(cache=True, nogil=True)
 def _sobel_boxes(smooth: np.ndarray, pts: np.ndarray, reach: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> None:
     """gradients_near's kernel: the 3x3 Sobel / 8 of ``smooth`` into gx, gy over each point's box (boxes that
     overlap are computed again: the same values). Pixels inside the image by a pixel take a loop the
     compiler vectorises; the image's outermost ones mirror it as cv2.BORDER_REFLECT_101 does."""
     h, w = smooth.shape
-    eighth = np.float32(0.125)
-    two = np.float32(2.0)
+    one = np.uint64(1)
     for i in range(pts.shape[0]):
         r = reach[i] + 1.0
         x0 = max(0, int(math.floor(pts[i, 0] - r)))
@@ -85,16 +95,10 @@ def _sobel_boxes(smooth: np.ndarray, pts: np.ndarray, reach: np.ndarray, gx: np.
             down = smooth[_reflect_101(y + 1, h)]
             # unsigned indices: no check for negative ones, so the loop is vectorised
             for j in range(np.uint64(a), np.uint64(b + 1)):
-                jl = j - np.uint64(1)
-                jr = j + np.uint64(1)
-                gx[y, j] = ((up[jr] - up[jl]) + two * (mid[jr] - mid[jl]) + (down[jr] - down[jl])) * eighth
-                gy[y, j] = ((down[jl] + two * down[j] + down[jr]) - (up[jl] + two * up[j] + up[jr])) * eighth
+                gx[y, j], gy[y, j] = _sobel_at(up, mid, down, j - one, j, j + one)
             for x in (x0, x1):  # the image's first or last column (or a box that is only that)
                 if x < a or x > b:
-                    xl = _reflect_101(x - 1, w)
-                    xr = _reflect_101(x + 1, w)
-                    gx[y, x] = ((up[xr] - up[xl]) + two * (mid[xr] - mid[xl]) + (down[xr] - down[xl])) * eighth
-                    gy[y, x] = ((down[xl] + two * down[x] + down[xr]) - (up[xl] + two * up[x] + up[xr])) * eighth
+                    gx[y, x], gy[y, x] = _sobel_at(up, mid, down, _reflect_101(x - 1, w), x, _reflect_101(x + 1, w))
 
 
 def prepare_image(grey: np.ndarray, sigma: float = 0.8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

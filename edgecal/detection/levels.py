@@ -13,9 +13,9 @@ from edgecal.detection.candidates import estimate_noise_sigma, gradients, gradie
 _WINDOW_ALIGN_PX = 32
 
 
-# Share of a level's pixels (the discs' summed areas, over all calls) up to which Level.gradients_near computes the
-# gradients round the points only: 2-3x cheaper than the whole images' Sobels at a share of 0.1-0.4, as
-# cheap at ~0.7 (54 discs on 640x480), where the whole images are made and kept for later use.
+# Share of a level's pixels (the discs' summed areas, over all calls) up to which Level.gradients_near
+# computes the gradients round the points only: 2-3x cheaper than the whole images' Sobels at a share of
+# 0.1-0.4, as cheap at ~0.7 (54 discs on 640x480), where the whole images are made and kept for later use.
 _NEAR_SHARE = 0.5
 
 
@@ -70,6 +70,7 @@ class Level:
     def _grads(self) -> tuple[np.ndarray, np.ndarray]:
         if self._gradients is None:
             self._gradients = gradients(self.smooth)
+            self._near = None  # (the discs' images are not used again)
         return self._gradients
 
 
