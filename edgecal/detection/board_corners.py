@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-from edgecal.detection.completion import predict_holes
+from edgecal.detection.completion import dense_labels, line_predictions, predict_holes
 from edgecal.detection.line_bend import bend_shift
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.subpixel import (
@@ -24,6 +24,9 @@ from edgecal.detection.subpixel import (
 
 # A final corner further than this fraction of a square from where its neighbours put it slid along an edge.
 SLID_FRACTION = 0.2
+# A corner the X-junction fit did not place is fitted again from where a grid line through it puts it when
+# that is at least this far from where it is (_refit_from_grid_lines).
+REFIT_MIN_OFFSET_PX = 1.0
 
 
 def final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams,
@@ -60,9 +63,58 @@ def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np
         return unpolished(xy)
     angles, radius = grid_line_angles(xy, ids), xjunction_radius(smooth, xy, ids)
     out, fitted, noise = xjunction_fit(grey, xy, angles, radius)
+    if _refit_from_grid_lines(grey, smooth, out, ids, fitted, noise):
+        angles, radius = grid_line_angles(out, ids), xjunction_radius(smooth, out, ids)
     # the fit's straight lines sit off a lens-bent grid's edges (line_bend): the corners it placed put back
     shift = fitted[:, None] * bend_shift(out, ids, angles, radius)
     return out - shift, fitted, np.hypot(shift[:, 0], shift[:, 1]), noise
+
+
+def _refit_from_grid_lines(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, fitted: np.ndarray,
+                           noise: np.ndarray) -> bool:
+    """The corners ``xy`` (N, 2; ``ids`` (N, 2)) the X-junction fit did not place (``fitted`` False), started
+    again from where the grid lines through them put them and fitted again; ``xy``, ``fitted`` and ``noise``
+    (as xjunction_fit's) are updated in place for those it now places. Whether any was.
+
+    A corner the fit does not place is often one cornerSubPix slid along an edge: at a fisheye's rim
+    (squares thin and bent, the homographies that predict and resettle corners a quarter of a square off)
+    such corners stayed 4-6 px off on boards found whole (synthetic 150-200 degree views of a 6x7 board:
+    6 boards in 78 scored partial for it). Each is predicted from the placed corners alone, along each of
+    its lines (completion.line_predictions), where that is more than REFIT_MIN_OFFSET_PX from it, refined
+    there (cornerSubPix, the saddle fit) and fitted; it takes the first fit that lands within a quarter of
+    a square of its prediction when every such fit lands on the same corner (within a pixel). The corners
+    the fit places are never moved, so which boards are found does not change.
+    """
+    todo = np.flatnonzero(~fitted)
+    if not len(todo) or fitted.sum() < 3:
+        return False
+    dense, lo = dense_labels(dict(zip(map(tuple, ids[fitted].tolist()), xy[fitted])))
+    preds, spacing, ok = line_predictions(dense, lo, ids[todo])
+    # (a start its lines put where it already is gives the same corner: most rim corners a board's cut outer
+    # squares leave without a disc)
+    ok &= np.linalg.norm(preds - xy[todo][:, None], axis=2) > REFIT_MIN_OFFSET_PX
+    found = np.full((len(todo), preds.shape[1], 2), np.nan)
+    found_noise = np.full((len(todo), preds.shape[1], 2, 2), np.nan)
+    for side in range(preds.shape[1]):
+        use = np.flatnonzero(ok[:, side])
+        if not len(use):
+            continue
+        start, step = preds[use, side], spacing[use, side]
+        settled = saddle_refine(smooth, refine_corners(smooth, start, step), step)
+        trial = xy.copy()
+        trial[todo[use]] = settled
+        fit, placed, fit_noise = xjunction_fit(grey, settled, grid_line_angles(trial, ids)[todo[use]],
+                                               xjunction_radius(smooth, trial, ids)[todo[use]])
+        placed &= np.hypot(*(fit - start).T) < 0.25 * step
+        found[use[placed], side] = fit[placed]
+        found_noise[use[placed], side] = fit_noise[placed]
+    refitted = False
+    for k, i in enumerate(todo.tolist()):
+        sides = np.flatnonzero(np.isfinite(found[k, :, 0]))
+        if len(sides) and (np.hypot(*(found[k, sides] - found[k, sides[0]]).T) <= 1.0).all():
+            xy[i], noise[i], fitted[i] = found[k, sides[0]], found_noise[k, sides[0]], True
+            refitted = True
+    return refitted
 
 
 def unpolished(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -631,6 +631,48 @@ def grid_may_continue(grid: dict[tuple[int, int], np.ndarray], smooth: np.ndarra
     return False
 
 
+def line_predictions(dense: np.ndarray, lo: np.ndarray, labels: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each of the ``labels`` (B, 2) predicted along the grid lines through it, from each of its four sides
+    (_OUTWARD_STEPS), on a grid's dense_labels ``dense`` (label ``lo`` at [0, 0]): quadratic from the three
+    nearest corners on that side, linear from two (_extrapolate). Returns (points (B, 4, 2), nearest-corner
+    distances (B, 4), predicted (B, 4) bool)."""
+    steps = len(_OUTWARD_STEPS)
+    repeated = np.repeat(np.asarray(labels, dtype=np.int64).reshape(-1, 2), steps, axis=0)
+    outward = np.tile(np.array(_OUTWARD_STEPS, dtype=np.int64), (len(repeated) // steps, 1))
+    pts, spacing, ok = _extrapolate(dense, int(lo[0]), int(lo[1]), repeated, outward)
+    return pts.reshape(-1, steps, 2), spacing.reshape(-1, steps), ok.reshape(-1, steps)
+
+
+def _take_line_predictions(grid: dict[tuple[int, int], np.ndarray], dense: np.ndarray, lo: np.ndarray,
+                           holes: np.ndarray, verified: _VerifiedPredictions) -> bool:
+    """The holes (B, 2) of ``grid`` (its dense_labels ``dense``, ``lo``) that no homography prediction filled,
+    predicted again along each of the grid lines through them (line_predictions) and verified as a new
+    outer line's points are (not pinned: the probe's full test and the ring pre-filter); a hole takes its
+    first confirmed prediction when every confirmed one lands on the same corner (within a quarter of the
+    spacing). Whether any was added.
+
+    At a fisheye's rim the squares shrink too fast for a homography of the 3x3 (or 5x5) neighbourhood: its
+    predictions for the outermost holes miss them by a quarter of a square or more, from where their
+    refinement does not reach the corner, while the board's own lines, bent as they are, still run through
+    it (the 190-degree set with faint added noise: one board in eight left with six holes)."""
+    pts, spacing, ok = line_predictions(dense, lo, holes)
+    pts, spacing, ok = pts.reshape(-1, 2), spacing.reshape(-1), ok.reshape(-1)
+    at = np.flatnonzero(ok)
+    if not len(at):
+        return False
+    alt, alt_good = verified.verify(pts[at], spacing[at], np.zeros(len(at), dtype=bool))
+    owner = at // len(_OUTWARD_STEPS)
+    added = False
+    for hole in np.unique(owner[alt_good]).tolist():
+        mine = np.flatnonzero((owner == hole) & alt_good)
+        first = alt[mine[0]]
+        if (np.linalg.norm(alt[mine] - first, axis=1) <= 0.25 * spacing[at][mine]).all():
+            grid[(int(holes[hole, 0]), int(holes[hole, 1]))] = first
+            added = True
+    return added
+
+
 def complete_grid(grid: dict[tuple[int, int], np.ndarray], level: Level, max_dim: int, params: DetectorParams,
                   accepted: np.ndarray | None = None) -> dict[tuple[int, int], np.ndarray]:
     """Fill holes and grow the grid at its sides (up to ``max_dim`` labels per axis) on ``level``; returns a
@@ -697,6 +739,9 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], level: Level, max_dim
             for i in sel:
                 grid[keys[i]] = refined[i]
             added = added or bool(sel)
+        if not added and len(holes):
+            # the last resort for holes no homography reaches: the grid lines through them
+            added = _take_line_predictions(grid, dense, lo, holes, verified)
         if not added:
             break
     return grid
