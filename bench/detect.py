@@ -203,14 +203,17 @@ def timing_set(sets: list[BenchSet], size: tuple[int, int] = (1280, 800)) -> Ben
 #: Scale sweep: nominal square size (px) -> board (inner corners) that still fits a 1280x800 frame.
 SWEEP = {8: (9, 6), 12: (9, 6), 20: (9, 6), 35: (9, 6), 60: (9, 6), 100: (6, 4), 150: (4, 3)}
 RENDER_SIZE = (1280, 800)
+FISHEYE_RENDER_SIZE = (752, 480)
 
 
 def rendered_sets(wanted: Callable[[str], bool], per_set: int = 4, seed: int = 2026) -> list[BenchSet]:
-    """Sets rendered on the fly by edgecal.synth, 1280x800: a scale sweep and clean renders.
+    """Sets rendered on the fly by edgecal.synth: a scale sweep, clean renders and wide-lens views.
 
-    ``rendered/scale_NNNpx``: one board, squares of NNN px nominal (the board shrinks for the big
-    squares), tilt up to 40 degrees, typical camera photometry and clutter. ``rendered/clean``: sharp,
-    faintly noisy renders (the corner RMS target). Deterministic seeds; only wanted sets are rendered.
+    ``rendered/scale_NNNpx`` (1280x800): one board, squares of NNN px nominal (the board shrinks for the big
+    squares), tilt up to 40 degrees, typical camera photometry and clutter. ``rendered/clean`` (1280x800):
+    sharp, faintly noisy renders (the corner RMS target). ``rendered/fisheye`` (752x480, the 190-degree
+    set's size; 3 x ``per_set`` views): a 6x7 board through a 150-200 degree Kannala-Brandt lens, tilt up to
+    50 degrees, often reaching the lens's rim. Deterministic seeds; only wanted sets are rendered.
     """
     try:
         from edgecal.synth.scenes import planar_view
@@ -218,22 +221,35 @@ def rendered_sets(wanted: Callable[[str], bool], per_set: int = 4, seed: int = 2
     except ImportError as exc:
         print(f"# rendered sets skipped: edgecal.synth not importable ({exc})", file=sys.stderr)
         return []
-    specs = [(f"rendered/scale_{sq:03d}px", sq, board, "normal", 40.0) for sq, board in SWEEP.items()]
-    specs.append(("rendered/clean", (15.0, 45.0), (9, 6), "clean", 40.0))
+    # (name, square px, board, photometry, tilt, lens, size, views)
+    specs = [(f"rendered/scale_{sq:03d}px", sq, board, "normal", 40.0, "mild", RENDER_SIZE, per_set)
+             for sq, board in SWEEP.items()]
+    specs.append(("rendered/clean", (15.0, 45.0), (9, 6), "clean", 40.0, "mild", RENDER_SIZE, per_set))
+    specs.append(("rendered/fisheye", (40.0, 90.0), (6, 7), "normal", 50.0, "fisheye", FISHEYE_RENDER_SIZE,
+                  3 * per_set))
     sets = []
-    for name, square_px, (cols, rows), phot, tilt in specs:
+    for name, square_px, (cols, rows), phot, tilt, lens, size, count in specs:
         if not wanted(name):
             continue
         t0 = time.perf_counter()
-        items = []
-        for k in range(per_set):
-            view = planar_view((seed, zlib.crc32(name.encode()) % 10_000, k), size=RENDER_SIZE, cols=cols, rows=rows,
-                               square_px=square_px, tilt_max_deg=tilt, photometric=phot)
+        items: list[Item] = []
+        k = -1
+        while len(items) < count:
+            k += 1
+            try:
+                view = planar_view((seed, zlib.crc32(name.encode()) % 10_000, k), size=size, cols=cols, rows=rows,
+                                   square_px=square_px, tilt_max_deg=tilt, photometric=phot, distortion=lens)
+            except ValueError:  # a board of these squares does not fit this view: the next seed
+                continue
+            if not view.truth["boards"]:  # (a wide lens's view can leave the board behind the camera)
+                continue
             truth = ground_truth_from_mapping(view.truth, f"{name}#{k}")
             target = _target_from_boards(view.truth["target"]["boards"], f"{cols}x{rows}")
             items.append(Item(f"{name.split('/')[1]}_{k}", view.image, target, truth))
-        what = f"{square_px} px squares" if isinstance(square_px, int) else "15-45 px squares"
-        sets.append(BenchSet(name, items, f"{cols}x{rows}, {what}, {phot} photometry, rendered in "
+        what = f"{square_px} px squares" if isinstance(square_px, int) else \
+            f"{square_px[0]:.0f}-{square_px[1]:.0f} px squares"
+        lens_note = ", 150-200 deg fisheye" if lens == "fisheye" else ""
+        sets.append(BenchSet(name, items, f"{cols}x{rows}, {what}{lens_note}, {phot} photometry, rendered in "
                                           f"{time.perf_counter() - t0:.1f} s"))
     return sets
 
