@@ -2,13 +2,15 @@
 """Detection benchmark: edgecal against the reference detectors on the same images, single thread.
 
     .venv/bin/python bench/detect.py [--sets planar,hard,real/*] [--detectors edgecal,opencv] \
-        [--repeat 3] [--clock cpu] [--json out/bench.json] [--force]
+        [--repeat 3] [--clock cpu] [--json out/bench.json] [--force] [--noise 1 [--noise-copies 3]]
 
 Per set and detector it prints: boards found with all corners correctly ordered (and the rate), false
 boards (detections lying on no true board; on negatives every detection is one), corner RMS against
 ground truth (or reference corners) over the found boards, median and p90 ms per image, and the ratio
 of each to edgecal. The first call of every detector (numba JIT, lazy initialisation) is timed apart
 and printed as warm-up; it is not in the per-image times. Sets whose data is absent are skipped.
+``--noise SIGMA``: every scored image is replaced by noisy copies (white noise of SIGMA grey levels, one seed
+each), to see which results hold when the image changes by what a sensor's noise changes between shots.
 
 Scoring (edgecal.scoring): edgecal must number boards as the truth does, up to the board's own
 symmetries; the references know nothing of our numbering, so any grid symmetry is accepted for them.
@@ -767,6 +769,26 @@ def select_sets(root: Path, patterns: list[str]) -> list[BenchSet]:
     return sets
 
 
+def with_added_noise(sets: list[BenchSet], sigma: float, seeds: int) -> list[BenchSet]:
+    """The scored sets of ``sets`` with each image replaced by ``seeds`` copies with white noise of ``sigma``
+    grey levels added (rounded, clipped to 8 bits; copy k from seed k): how a result holds when the image
+    changes by what a sensor's noise changes between two shots. Timing sets are left out."""
+    out = []
+    for bset in sets:
+        if bset.timing_only:
+            continue
+        items = []
+        for k in range(seeds):
+            rng = np.random.default_rng([k, zlib.crc32(bset.name.encode())])
+            for it in bset.items:
+                noisy = it.grey.astype(np.float32) + rng.normal(0.0, sigma, it.grey.shape).astype(np.float32)
+                items.append(dataclasses.replace(it, name=f"{it.name}~{k}",
+                                                 grey=np.clip(np.rint(noisy), 0, 255).astype(np.uint8)))
+        out.append(dataclasses.replace(bset, name=f"{bset.name} +noise {sigma:g}", items=items,
+                                       note=f"{seeds} noisy copies of each image; {bset.note}".rstrip("; ")))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; returns the exit code."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -782,7 +804,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, help="also write all results to this JSON file")
     ap.add_argument("--markdown", type=Path, help="also write the README tables (Markdown) to this file")
     ap.add_argument("--force", action="store_true", help="overwrite the --json/--markdown files if they exist")
+    ap.add_argument("--noise", type=float, default=0.0, metavar="SIGMA",
+                    help="add white noise of SIGMA grey levels to every image (robustness; timing sets dropped)")
+    ap.add_argument("--noise-copies", type=int, default=3, metavar="N",
+                    help="with --noise: noisy copies of each image, each from its own seed (default 3)")
     args = ap.parse_args(argv)
+    if not (0.0 <= args.noise <= 64.0) or args.noise_copies < 1:
+        print(f"bench: --noise must be 0-64 grey levels and --noise-copies at least 1 (got {args.noise:g}, "
+              f"{args.noise_copies})", file=sys.stderr)
+        return 2
     cv2.setNumThreads(1)
 
     names = [n.strip() for n in args.detectors.split(",") if n.strip()]
@@ -804,6 +834,8 @@ def main(argv: list[str] | None = None) -> int:
     except EdgecalError as exc:
         print(f"bench: {exc}", file=sys.stderr)
         return 2
+    if args.noise > 0.0:
+        sets = with_added_noise(sets, args.noise, args.noise_copies)
     if not sets:
         print("bench: no set selected or present", file=sys.stderr)
         return 2

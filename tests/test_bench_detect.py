@@ -147,3 +147,20 @@ def test_load_ocamcalib_json_puts_the_cols_axis_first(bench, tmp_path):
     assert (board.cols, board.rows) == (3, 2)
     assert board.ids[:, 0].max() == 2 and board.ids[:, 1].max() == 1
     assert np.allclose(board.corners[board.ids[:, 0] == 2][:, 0], 50.0)
+
+
+def test_noisy_copies_keep_truth_and_differ_by_the_noise(bench, item) -> None:
+    sets = [bench.BenchSet("rendered/x", [item], "note"), bench.BenchSet("timing/x", [item], timing_only=True)]
+    (noisy,) = bench.with_added_noise(sets, 2.0, 3)
+    assert noisy.name == "rendered/x +noise 2" and [it.name for it in noisy.items] == [f"{item.name}~{k}"
+                                                                                      for k in range(3)]
+    diffs = [it.grey.astype(float) - item.grey for it in noisy.items]
+    assert all(it.truth is item.truth and it.grey.dtype == np.uint8 for it in noisy.items)
+    assert all(1.6 < d.std() < 2.4 for d in diffs) and not np.array_equal(diffs[0], diffs[1])
+    again = bench.with_added_noise(sets, 2.0, 3)[0]
+    assert all(np.array_equal(a.grey, b.grey) for a, b in zip(noisy.items, again.items))  # seeded
+
+
+def test_the_noise_option_rejects_absurd_values(bench, capsys) -> None:
+    assert bench.main(["--noise", "-1", "--detectors", "edgecal"]) == 2
+    assert "--noise must be 0-64" in capsys.readouterr().err
