@@ -174,3 +174,18 @@ def test_fisheye_rim_corners_slid_along_an_edge_are_fitted_again_from_the_grid_l
     err = np.linalg.norm(det.corners[:, None] - truth[None], axis=2).min(axis=1)
     assert len(det.corners) == 42 and err.max() < 0.1, np.round(np.sort(err)[-3:], 2)
     assert det.xjunction_fitted.all()
+
+
+def test_a_fisheye_board_irregular_only_for_slid_corners_is_kept() -> None:
+    # A hard-photometry wide-lens view whose final cornerSubPix corners broke the grid's regularity at the
+    # rim (rejected: "not regular"); polished (the X-junction fit and its refit from the grid lines) the
+    # grid is regular and the board is found.
+    from edgecal.scoring import FoundGrid, score_image
+    from edgecal.synth.truth import ground_truth_from_mapping
+
+    view = planar_view([31, 77], size=(752, 480), cols=6, rows=7, square_px=(40.0, 90.0), distortion="fisheye",
+                       photometric="hard", tilt_max_deg=50.0)
+    found = detect(view.image, planar_target(6, 7))
+    score = score_image([FoundGrid(d.corners, d.ids, d.grid) for d in found],
+                        ground_truth_from_mapping(view.truth, "fisheye"), "grid")
+    assert score.n_found == 1 and score.false_boards == 0
