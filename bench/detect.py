@@ -238,6 +238,9 @@ def rendered_sets(wanted: Callable[[str], bool], per_set: int = 4, seed: int = 2
         k = -1
         while len(items) < count:
             k += 1
+            if k >= 20 * count:  # (no view of these seeds holds the board: say so instead of looping on)
+                print(f"# {name}: only {len(items)} of {count} views hold the board", file=sys.stderr)
+                break
             try:
                 view = planar_view((seed, zlib.crc32(name.encode()) % 10_000, k), size=size, cols=cols, rows=rows,
                                    square_px=square_px, tilt_max_deg=tilt, photometric=phot, distortion=lens)
