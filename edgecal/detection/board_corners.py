@@ -32,10 +32,11 @@ REFIT_ROUNDS = 4
 
 
 def final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams,
-                  spacing: np.ndarray | None = None) -> np.ndarray:
+                  spacing: np.ndarray | None = None, saddle_fit: bool = True) -> np.ndarray:
     """A board's final corners: cornerSubPix with the window from the grid's own spacing (``spacing``, or
     the corners' nearest-neighbour distances), the corners on the board's rim again with a smaller window
-    where that continues the grid's lines better (refine_rim), then (refiner "saddle") the saddle fit.
+    where that continues the grid's lines better (refine_rim), then (refiner "saddle" or "xjunction", and
+    ``saddle_fit``) the saddle fit.
 
     The cornerSubPix pass is needed even where ``xy`` come from cornerSubPix already (measured: without it
     a box_stereo board is lost and 37 corners of the real sets move by 3-10 px): completion's corners stop
@@ -43,7 +44,7 @@ def final_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: Detect
     """
     spacing = nearest_spacing(xy) if spacing is None else spacing
     xy, window = refine_rim(smooth, refine_corners(smooth, xy, spacing), ids, spacing)
-    return xy if p.subpixel_refiner == "cornersubpix" else saddle_refine(smooth, xy, window)
+    return xy if p.subpixel_refiner == "cornersubpix" or not saddle_fit else saddle_refine(smooth, xy, window)
 
 
 def polish_corners(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray, p: DetectorParams
