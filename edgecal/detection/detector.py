@@ -17,7 +17,13 @@ import cv2
 import numpy as np
 from numba import njit
 
-from edgecal.detection.board_corners import final_corners, polish_corners, resettle_slid_corners, unpolished
+from edgecal.detection.board_corners import (
+    final_corners,
+    polish_corners,
+    provisional_corners,
+    resettle_slid_corners,
+    unpolished,
+)
 from edgecal.detection.candidates import (
     chess_filter,
     chess_ring,
@@ -422,13 +428,10 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
         if ids is None:
             notes.append(f"found a {span[0]}x{span[1]} grid that could not be oriented")
             continue
-        # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check.
-        # A provisional board's corners are refined again at full resolution, with the saddle fit and the
-        # slid corners put back there; its rim pass stays (Bouguet's cut-short outer squares: without it a
-        # rim corner starts 6-10 px off, out of the full-resolution refinement's reach).
-        xy = final_corners(smooth, xy, ids, p, saddle_fit=not provisional)
-        if not provisional:
-            xy = resettle_slid_corners(smooth, ids, xy, p)
+        # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check (a
+        # provisional board's final pass is at full resolution).
+        xy = provisional_corners(smooth, xy, ids) if provisional else resettle_slid_corners(
+            smooth, ids, final_corners(smooth, xy, ids, p), p)
         polished = unpolished(xy) if provisional else polish_corners(level.grey, smooth, xy, ids, p)
         # Corners cornerSubPix slid along an edge at a fisheye's rim can make the grid look irregular; the
         # polished ones (the X-junction fit, fitted again from the grid lines where it saw no corner) are
