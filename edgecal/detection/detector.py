@@ -87,6 +87,9 @@ WINDOW_MARGIN_PX = 48
 # _window_reaches_edge) samples the outer squares half a square along the rim beyond a board's last corners,
 # the covariances' light field a quarter square diagonally from every corner.
 WINDOW_RIM_MARGIN_STEPS = 0.75
+# ... plus this many pixels (not WINDOW_MARGIN_PX: no probe reads beyond such a board): a cornerSubPix window
+# (half-width at most 12 px) and the X-junction fit's disc (radius at most 12 px) round its outer corners.
+WINDOW_RIM_MARGIN_PX = 16
 # The full-resolution smoothing's noise per half-resolution noise estimate (1 / pyrDown's gain on white
 # noise): the value the smoothing was tuned with (see _search).
 SMOOTHING_NOISE_PER_HALF_NOISE = 1.0 / 0.273
@@ -274,7 +277,8 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
         may_grow.append(spacing < GROWTH_CHECK_HALF_SPACING_PX or grid_may_continue(
             dict(zip(map(tuple, det.ids.tolist()), det.corners)), half_level.smooth, p))
         steps = WINDOW_MARGIN_STEPS if may_grow[-1] else WINDOW_RIM_MARGIN_STEPS
-        margin = WINDOW_MARGIN_PX + steps * 2.0 * _largest_step(det.corners, det.ids)
+        margin_px = WINDOW_MARGIN_PX if may_grow[-1] else WINDOW_RIM_MARGIN_PX
+        margin = margin_px + steps * 2.0 * _largest_step(det.corners, det.ids)
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
     level = window_level(grey, noise_sigma, (box[:, 0].min(), box[:, 1].min(), box[:, 2].max(), box[:, 3].max()))
