@@ -23,7 +23,13 @@ def smooth_image(grey: np.ndarray, sigma: float = 0.8) -> np.ndarray:
     """The float32 image the detector samples: a Gaussian keeps sensor noise out of the gradients, and
     blurring does not move a corner's saddle point."""
     ksize = 2 * int(np.ceil(2.5 * sigma)) + 1
-    return cv2.GaussianBlur(grey.astype(np.float32), (ksize, ksize), sigma)
+    # GaussianBlur's kernel and border, applied to the uint8 image straight into float32: sepFilter2D reads
+    # the bytes (GaussianBlur needs a float copy first and filters it 3-4x slower); equal to it to 1e-4 grey
+    # levels (float rounding: the corners to ~1e-6 px)
+    if grey.dtype != np.uint8:
+        return cv2.GaussianBlur(grey.astype(np.float32), (ksize, ksize), sigma)
+    kernel = cv2.getGaussianKernel(ksize, sigma, cv2.CV_32F)
+    return cv2.sepFilter2D(grey, cv2.CV_32F, kernel, kernel, borderType=cv2.BORDER_DEFAULT)
 
 
 def gradients(smooth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
