@@ -15,7 +15,7 @@ from edgecal.detection.detector import detect
 from edgecal.detection.levels import Level
 from edgecal.detection.subpixel import nearest_spacing, on_board_rim, refine_corners, refine_rim, window_spacing
 from edgecal.detection.tracking import track_boards
-from edgecal.detection.types import CornerPrediction
+from edgecal.detection.types import CornerPrediction, Detection
 from edgecal.synth.camera import camera_from_fov
 from edgecal.synth.handheld import handheld_rig, handheld_sequence
 from edgecal.synth.panels import panels_from_target
@@ -195,7 +195,7 @@ def test_a_fisheye_board_irregular_only_for_slid_corners_is_kept() -> None:
 BOUGUET = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "opencv_stereo_9x6"
 
 
-def _worst_line_misfit(det) -> float:
+def _worst_line_misfit(det: Detection) -> float:
     """The largest distance (px) of an outer corner from where the line through the next three corners
     inwards puts it (3a - 3b + c)."""
     cols, rows = det.grid

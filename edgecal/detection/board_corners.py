@@ -52,8 +52,8 @@ def provisional_corners(smooth: np.ndarray, xy: np.ndarray, ids: np.ndarray) -> 
     corners ``xy`` (N, 2; ``ids`` (N, 2): col, row) with only the rim pass of final_corners (refine_rim).
 
     The rim pass cannot wait: on Bouguet's board, whose outer squares are cut short, a rim corner it leaves
-    out starts 6-10 px off, beyond the full-resolution refinement's reach. The rest is done there (here it
-    moved no corner of bench/detect.py's images, noisy copies included, by more than 0.075 px at the end).
+    out starts 6-10 px off, beyond the full-resolution refinement's reach. The rest is done there only
+    (which moved no final corner of bench/detect.py's images, noisy copies included, by more than 0.08 px).
     """
     xy = np.asarray(xy, dtype=np.float64)
     return refine_rim(smooth, xy, ids, nearest_spacing(xy))[0]
