@@ -21,13 +21,11 @@ def smoothing_sigma(noise_sigma: float) -> float:
 
 def smooth_image(grey: np.ndarray, sigma: float = 0.8) -> np.ndarray:
     """The float32 image the detector samples: a Gaussian keeps sensor noise out of the gradients, and
-    blurring does not move a corner's saddle point."""
+    blurring does not move a corner's saddle point. ``grey``: any depth (uint8 images, float noise)."""
     ksize = 2 * int(np.ceil(2.5 * sigma)) + 1
-    # GaussianBlur's kernel and border, applied to the uint8 image straight into float32: sepFilter2D reads
-    # the bytes (GaussianBlur needs a float copy first and filters it 3-4x slower); equal to it to 1e-4 grey
-    # levels (float rounding: the corners to ~1e-6 px)
-    if grey.dtype != np.uint8:
-        return cv2.GaussianBlur(grey.astype(np.float32), (ksize, ksize), sigma)
+    # GaussianBlur's kernel and border, straight into float32: sepFilter2D reads a uint8 image as it is
+    # (GaussianBlur needs a float copy first and filters it 3-4x slower); equal to GaussianBlur to 1e-4 grey
+    # levels on uint8 (float rounding: the corners to ~1e-6 px), to the bit on float32
     kernel = cv2.getGaussianKernel(ksize, sigma, cv2.CV_32F)
     return cv2.sepFilter2D(grey, cv2.CV_32F, kernel, kernel, borderType=cv2.BORDER_DEFAULT)
 
@@ -299,9 +297,7 @@ def _unit_noise_response(sigma_centi: int, block_size: int, percentile: float) -
     correlated (smoothed) gradients has no simple closed form."""
     rng = np.random.default_rng(0)
     noise = rng.standard_normal((160, 160)).astype(np.float32)
-    sigma = sigma_centi / 100.0
-    ksize = 2 * int(np.ceil(2.5 * sigma)) + 1
-    smooth = cv2.GaussianBlur(noise, (ksize, ksize), sigma)
+    smooth = smooth_image(noise, sigma_centi / 100.0)
     gx, gy = gradients(smooth)
     lam = min_eigen_image(gx, gy, block_size)[8:-8, 8:-8]
     return float(np.percentile(lam, percentile))
@@ -656,9 +652,7 @@ def _unit_noise_chess(sigma_centi: int, radius_deci: int, quantile: float) -> fl
     _unit_noise_response."""
     rng = np.random.default_rng(0)
     noise = rng.standard_normal((200, 200)).astype(np.float32)
-    sigma = sigma_centi / 100.0
-    ksize = 2 * int(np.ceil(2.5 * sigma)) + 1
-    smooth = cv2.GaussianBlur(noise, (ksize, ksize), sigma)
+    smooth = smooth_image(noise, sigma_centi / 100.0)
     dx, dy = chess_ring(radius_deci / 10.0)
     out = np.empty_like(smooth)
     chess_response(smooth, dx, dy, out)

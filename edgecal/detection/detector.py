@@ -276,8 +276,8 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
             return None
         may_grow.append(spacing < GROWTH_CHECK_HALF_SPACING_PX or grid_may_continue(
             dict(zip(map(tuple, det.ids.tolist()), det.corners)), half_level.smooth, p))
-        steps = WINDOW_MARGIN_STEPS if may_grow[-1] else WINDOW_RIM_MARGIN_STEPS
-        margin_px = WINDOW_MARGIN_PX if may_grow[-1] else WINDOW_RIM_MARGIN_PX
+        steps, margin_px = ((WINDOW_MARGIN_STEPS, WINDOW_MARGIN_PX) if may_grow[-1]
+                            else (WINDOW_RIM_MARGIN_STEPS, WINDOW_RIM_MARGIN_PX))
         margin = margin_px + steps * 2.0 * _largest_step(det.corners, det.ids)
         boxes.append(np.concatenate([2.0 * det.corners.min(axis=0) - margin, 2.0 * det.corners.max(axis=0) + margin]))
     box = np.array(boxes)
