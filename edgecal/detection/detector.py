@@ -50,7 +50,7 @@ from edgecal.detection.probe import (
     probe_reach,
     ring_prefilter_radii,
 )
-from edgecal.detection.subpixel import SEARCH_CRITERIA, id_grid, nearest_spacing, refine_corners
+from edgecal.detection.subpixel import SEARCH_CRITERIA, id_grid, nearest_of, nearest_spacing, refine_corners
 from edgecal.detection.target_boards import (
     all_boards_found,
     boards_by_size,
@@ -90,6 +90,9 @@ WINDOW_RIM_MARGIN_STEPS = 0.75
 # ... plus this many pixels (not WINDOW_MARGIN_PX: no probe reads beyond such a board): a cornerSubPix window
 # (half-width at most 12 px) and the X-junction fit's disc (radius at most 12 px) round its outer corners.
 WINDOW_RIM_MARGIN_PX = 16
+# A corner the search's probe rated no further than this (half-resolution px) from where it ends keeps that
+# figure (Detection.quality) instead of being probed again.
+QUALITY_REUSE_PX = 0.1
 # The full-resolution smoothing's noise per half-resolution noise estimate (1 / pyrDown's gain on white
 # noise): the value the smoothing was tuned with (see _search).
 SMOOTHING_NOISE_PER_HALF_NOISE = 1.0 / 0.273
@@ -228,7 +231,8 @@ def _search(grey: np.ndarray, target: Target, p: DetectorParams) -> tuple[Detect
     # sequence: ~5800 per frame, now ~1100; all detections the same).
     level = Level(grey, half_resolution_noise_sigma(grey), smoothing_noise=smooth_noise)
     # pyrDown keeps the even pixels: x_full = 2 x_half.
-    debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing)
+    debug = DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
+                           quality=half.quality)
     seeds = []
     for grid in half_grids:
         if len(grid) < p.min_grid_corners:
@@ -297,12 +301,15 @@ def _refine_at_full_resolution(half: DetectionDebug, half_level: Level, grey: np
             return None
         xy, det.xjunction_fitted, det.bend_px, det.xjunction_noise = polish_corners(level.grey, level.smooth, xy,
                                                                                    det.ids, p)
+        provisional_xy = det.corners
         det.corners = xy + level.origin
-        # rated where the board was found: the half-resolution gradients exist, the window's need not (on
-        # bench/detect.py's boards the same figure as at full resolution to 0.02 on average, 0.06 at p95)
-        det.quality = _corner_quality(half_level, 0.5 * det.corners, p)
+        # rated where the board was found (the half-resolution gradients exist, the window's need not): where
+        # the search's probe rated a corner as good as where it ends, that figure, else the probe there
+        moved = np.hypot(*(0.5 * det.corners - provisional_xy).T)
+        kept = np.where(moved <= QUALITY_REUSE_PX, det.quality, np.nan)
+        det.quality = _corner_quality(half_level, 0.5 * det.corners, p, kept)
     return (DetectionDebug(2.0 * half.candidates, 2.0 * half.accepted, half.directions, 2.0 * half.spacing,
-                           half.detections, half.notes), level)
+                           half.detections, half.notes, half.quality), level)
 
 
 def _largest_step(corners: np.ndarray, ids: np.ndarray) -> float:
@@ -372,10 +379,10 @@ def _find_grids(level: Level, p: DetectorParams, exclude: list[np.ndarray] | Non
     spacing = nearest_spacing(pts)
     ok, dirs, meas = _probe(smooth, gx, gy, pts, probe_radii(spacing, p), p)
     pts, dirs, meas, spacing = pts[ok], dirs[ok], meas[ok], spacing[ok]
-    debug = DetectionDebug(cands, pts, dirs, spacing)
+    quality = probe_quality(meas, p)
+    debug = DetectionDebug(cands, pts, dirs, spacing, quality=quality)
     if len(pts) < 4:
         return debug, []
-    quality = probe_quality(meas, p)
     labels, _nbr = group_grids(pts, dirs, spacing, quality, p.line_distance_px, p.reference_spacing_px,
                                p.cross_ratio_tolerance)
     grids = []
@@ -396,10 +403,10 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
     detection. Several grids of one board's size all become detections, numbered by ``copy``.
 
     ``provisional``: the boards are refined again at full resolution (_refine_at_full_resolution), which
-    also grows every board by one line to see whether it is part of a larger grid and rates its corners
-    (on this level): here a grid that already is a complete board is not grown, its corners keep the
-    search's refinement with the rim pass (provisional_corners) and its quality is left empty (corners
-    refined once, at the resolution they are reported at).
+    also grows every board by one line to see whether it is part of a larger grid and rates the corners
+    the search did not (on this level): here a grid that already is a complete board is not grown, its
+    corners keep the search's refinement with the rim pass (provisional_corners) and its quality is the
+    search's probe's where a corner is one the search accepted (``debug.quality``), NaN elsewhere.
     """
     smooth = level.smooth
     by_size = boards_by_size(target)
@@ -437,6 +444,7 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
             continue
         # Final sub-pixel pass with the window from the grid's own spacing, then a last sanity check (a
         # provisional board's final pass is at full resolution).
+        search_xy = xy
         xy = provisional_corners(smooth, xy, ids) if provisional else resettle_slid_corners(
             smooth, ids, final_corners(smooth, xy, ids, p), p)
         polished = unpolished(xy) if provisional else polish_corners(level.grey, smooth, xy, ids, p)
@@ -450,7 +458,7 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
             continue
         xy, fitted, bend, noise = polished
         order = np.lexsort((ids[:, 0], ids[:, 1]))
-        quality = np.zeros(0) if provisional else _corner_quality(level, xy[order], p)
+        quality = (_searched_quality(search_xy, xy, debug) if provisional else _corner_quality(level, xy, p))[order]
         debug.detections.append(Detection(board.name, xy[order], ids[order], quality, (board.cols, board.rows),
                                           xjunction_fitted=fitted[order], bend_px=bend[order],
                                           xjunction_noise=noise[order]))
@@ -461,13 +469,30 @@ def _boards_from_grids(level: Level, grids: list[Grid], target: Target, p: Detec
             debug.notes.append(note)
 
 
-def _corner_quality(level: Level, xy: np.ndarray, p: DetectorParams) -> np.ndarray:
-    """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast)."""
+def _searched_quality(search_xy: np.ndarray, xy: np.ndarray, debug: DetectionDebug) -> np.ndarray:
+    """(N,): for each of a board's corners ``search_xy`` (N, 2) that is one of the search's accepted points
+    (debug.accepted, the same position) the quality its probe saw there (debug.quality); NaN for the others
+    (completion's) and where the corner has moved since (``xy``; the rim pass: it was rated off the corner)."""
+    if not len(debug.quality):
+        return np.full(len(xy), np.nan)
+    d, j = nearest_of(search_xy, debug.accepted)
+    return np.where((d == 0.0) & (xy == search_xy).all(axis=1), debug.quality[np.maximum(j, 0)], np.nan)
+
+
+def _corner_quality(level: Level, xy: np.ndarray, p: DetectorParams, known: np.ndarray | None = None
+                    ) -> np.ndarray:
+    """Per corner in [0, 1]: how cleanly the probe sees a chessboard corner there (angle error x contrast);
+    ``known`` (N,): figures already taken, kept where finite (only the others are probed)."""
     radii = probe_radii(nearest_spacing(xy), p)
+    quality = np.full(len(xy), np.nan) if known is None else np.array(known, dtype=np.float64)
+    todo = np.flatnonzero(~np.isfinite(quality))
+    if not len(todo):
+        return quality
     # (a window that only refines a board needs its gradients nowhere else)
-    gx, gy = level.gradients_near(xy, probe_reach(radii, p))
-    _ok, _dirs, meas = _probe(level.smooth, gx, gy, xy, radii, p, max(16, p.probe_angles // 2))
-    return probe_quality(meas, p)
+    gx, gy = level.gradients_near(xy[todo], probe_reach(radii[todo], p))
+    _ok, _dirs, meas = _probe(level.smooth, gx, gy, xy[todo], radii[todo], p, max(16, p.probe_angles // 2))
+    quality[todo] = probe_quality(meas, p)
+    return quality
 
 
 def detect(image: np.ndarray, target: Target, params: DetectorParams | None = None) -> list[Detection]:

@@ -90,6 +90,7 @@ class DetectionDebug:
     detections:  the final boards.
     notes:       human-readable remarks, each once, e.g. a grid of another size than the target's
                  ("found a 9x6 grid; the target says 8x6 inner corners").
+    quality:     (K,) how cleanly the probe saw each accepted point (probe_quality; empty when not kept).
     """
 
     candidates: np.ndarray
@@ -98,6 +99,7 @@ class DetectionDebug:
     spacing: np.ndarray
     detections: list[Detection] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    quality: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
