@@ -83,7 +83,7 @@ def triangulate_rays(v_left: np.ndarray, v_right: np.ndarray, R_right_left: np.n
     ok = np.all(np.isfinite(A), axis=(1, 2))
     h = np.full((len(A), 4), np.nan)
     if ok.any():
-        h[ok] = np.linalg.svd(A[ok])[2][:, -1, :]
+        h[ok] = np.linalg.svd(A[ok], full_matrices=False)[2][:, -1, :]  # (V only is needed)
     with np.errstate(divide="ignore", invalid="ignore"):
         return h[:, :3] / (h[:, 3:] * scale)
 

@@ -254,7 +254,8 @@ def _predict_from_dense(dense: np.ndarray, lo: np.ndarray, hl: np.ndarray) -> tu
                                                       np.ascontiguousarray(hl[idx]), _RING_OFFSETS[reach])
         if not len(which):
             continue
-        h = np.linalg.svd(systems)[2][:, -1].reshape(-1, 3, 3)
+        # (the null vector only: without U's full square, the same V to the bit at 2/3 of the time)
+        h = np.linalg.svd(systems, full_matrices=False)[2][:, -1].reshape(-1, 3, 3)
         # undo the normalisation: H = T^-1 Hn
         t_inv = np.zeros_like(h)
         t_inv[:, 0, 0] = t_inv[:, 1, 1] = 1.0 / scales
