@@ -196,6 +196,8 @@ def _holes_reference(dense: np.ndarray, lo: np.ndarray, hl: np.ndarray) -> tuple
 
 
 def test_hole_predictions_match_the_numpy_dlt() -> None:
+    """The batched kernels give the plain numpy DLT's predictions (its SVD's null vector; the kernels take
+    A^T A's eigenvector, the same to ~1e-14)."""
     rng = np.random.default_rng(11)
     h_true = np.array([[31.0, 4.0, 200.0], [-3.0, 27.0, 150.0], [0.002, -0.001, 1.0]])
     grid = {}
@@ -211,7 +213,7 @@ def test_hole_predictions_match_the_numpy_dlt() -> None:
     got_p, got_s = _predict_from_dense(dense, lo, holes)
     ref_p, ref_s = _holes_reference(dense, lo, holes)
     assert np.isfinite(got_p).all()  # every hole here has a usable neighbourhood (some only the 5x5 one)
-    assert np.array_equal(got_p, ref_p) and np.array_equal(got_s, ref_s)
+    assert np.abs(got_p - ref_p).max() < 1e-9 and np.abs(got_s - ref_s).max() < 1e-9
 
 
 def test_refine_corners_refines_each_point_as_on_its_own() -> None:
