@@ -10,6 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from edgecal.detection.board_corners import _bent_corners
 from edgecal.detection.candidates import (
     _local_maxima,
     gradients,
@@ -243,3 +244,19 @@ def test_refine_corners_refines_each_point_as_on_its_own() -> None:
         moved = float(np.hypot(*(one[0, 0] - pts[0].astype(np.float32))))
         limit = max_move if max_move is not None else max(1.5, half[0] / 2)
         assert np.array_equal(together[0], one[0, 0].astype(np.float64)) == (moved < limit)
+
+
+def test_the_slide_screen_flags_a_slid_corner_not_a_lens_bend() -> None:
+    """resettle_slid_corners' screen on a 9x6 grid of 30 px squares bent as a fisheye bends it (each line a
+    smooth curve, 48-68 px deep over the grid): no corner flagged (second differences alone flagged them all);
+    one corner slid 5 px along a row: it is flagged, and no corner off its row and column."""
+    rows, cols, step = 6, 9, 30.0
+    c, r = np.meshgrid(np.arange(cols, dtype=np.float64), np.arange(rows, dtype=np.float64))
+    u, v = (c - 4.0) / 4.0, (r - 2.5) / 2.5
+    dense = np.stack([100.0 + step * c + 40.0 * v ** 2 + 8.0 * v ** 4, 100.0 + step * r + 60.0 * u ** 2 + 8.0 * u ** 4],
+                     axis=2)
+    spacing = np.full((rows, cols), step)
+    assert not _bent_corners(dense, spacing).any()
+    dense[3, 4, 0] += 5.0
+    flagged = _bent_corners(dense, spacing)
+    assert flagged[3, 4] and all(r == 3 or c == 4 for r, c in np.argwhere(flagged).tolist())
