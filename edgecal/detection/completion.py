@@ -173,24 +173,38 @@ def _null_vectors(systems: np.ndarray) -> np.ndarray:
     return out
 
 
+# The hole (label offset 0) and its four diagonal neighbours (label offsets): the point and the spacing there.
+_HOMOGRAPHY_PROBE = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]])
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _probe_points(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The homographies' images q (K, 5, 3) of the hole and its four diagonal neighbours: the hole's point
-    (K, 2) and the distance to the nearest of the four (K,) (inf or NaN on a homography's horizon)."""
-    k_n = q.shape[0]
+def _probe_points(h: np.ndarray, means: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where the homographies ``h`` (K, 3, 3) of normalised image points (_hole_systems' centroids ``means``
+    (K, 2) and ``scales`` (K,) undone: H = T^-1 Hn) put the hole (label offset 0) and its four diagonal
+    neighbours (_HOMOGRAPHY_PROBE): the hole's point (K, 2) and the distance to the nearest of the four
+    (K,) (inf or NaN on a homography's horizon). One pass: numpy's batched products cost more than it."""
+    k_n = h.shape[0]
     pts = np.empty((k_n, 2))
     near = np.empty(k_n)
+    q = np.empty((_HOMOGRAPHY_PROBE.shape[0], 2))
     for k in range(k_n):
-        x0 = q[k, 0, 0] / q[k, 0, 2]
-        y0 = q[k, 0, 1] / q[k, 0, 2]
-        pts[k, 0] = x0
-        pts[k, 1] = y0
+        inv = 1.0 / scales[k]
+        for j in range(_HOMOGRAPHY_PROBE.shape[0]):
+            u = _HOMOGRAPHY_PROBE[j, 0]
+            v = _HOMOGRAPHY_PROBE[j, 1]
+            w = h[k, 2, 0] * u + h[k, 2, 1] * v + h[k, 2, 2]
+            x = (h[k, 0, 0] * u + h[k, 0, 1] * v + h[k, 0, 2]) * inv + means[k, 0] * w
+            y = (h[k, 1, 0] * u + h[k, 1, 1] * v + h[k, 1, 2]) * inv + means[k, 1] * w
+            q[j, 0] = x / w
+            q[j, 1] = y / w
+        pts[k, 0] = q[0, 0]
+        pts[k, 1] = q[0, 1]
         best = np.inf
         nan = False
-        for j in range(1, 5):
-            dx = q[k, j, 0] / q[k, j, 2] - x0
-            dy = q[k, j, 1] / q[k, j, 2] - y0
-            d = math.sqrt(dx * dx + dy * dy)
+        for j in range(1, q.shape[0]):
+            dx = q[j, 0] - q[0, 0]
+            dy = q[j, 1] - q[0, 1]
+            d = math.sqrt(dx * dx + dy * dy)  # (NaN on the horizon, where hypot could give inf)
             if math.isnan(d):
                 nan = True
             elif d < best:
@@ -267,15 +281,8 @@ def _predict_from_dense(dense: np.ndarray, lo: np.ndarray, hl: np.ndarray) -> tu
                                                       np.ascontiguousarray(hl[idx]), _RING_OFFSETS[reach])
         if not len(which):
             continue
-        h = _null_vectors(systems).reshape(-1, 3, 3)
-        # undo the normalisation: H = T^-1 Hn
-        t_inv = np.zeros_like(h)
-        t_inv[:, 0, 0] = t_inv[:, 1, 1] = 1.0 / scales
-        t_inv[:, 0, 2], t_inv[:, 1, 2] = means[:, 0], means[:, 1]
-        t_inv[:, 2, 2] = 1.0
-        q = np.einsum("bij,kj->bki", t_inv @ h, _HOMOGRAPHY_PROBE)
         b = idx[which]
-        out_p[b], out_s[b] = _probe_points(np.ascontiguousarray(q))
+        out_p[b], out_s[b] = _probe_points(_null_vectors(systems).reshape(-1, 3, 3), means, scales)
         todo[b] = False
     return out_p, out_s
 
@@ -290,8 +297,6 @@ def _ring_offsets(reach: int) -> np.ndarray:
 _RING_OFFSETS = {reach: _ring_offsets(reach) for reach in (1, 2)}
 # The outward steps (du, dv) of _side_labels' four lines, sorted.
 _OUTWARD_STEPS = ((-1, 0), (0, -1), (0, 1), (1, 0))
-# The hole (label offset 0) and its four diagonal neighbours, homogeneous: the point and the spacing there.
-_HOMOGRAPHY_PROBE = np.c_[np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, -1.0]]), np.ones(5)]
 
 
 def _cells_beyond(grid: dict[tuple[int, int], np.ndarray], line: list[tuple[int, int]],
