@@ -4,7 +4,8 @@ Noise, glare or a shadow can make the probe reject a few true corners, which lea
 outer row) in a grid. Each missing label is predicted by a homography fitted to the nearby labelled
 corners (local, so lens distortion does not matter), refined to sub-pixel, and accepted only if the probe
 confirms a chessboard corner there and the refinement stayed near the prediction. Rows and columns are
-added at the grid's sides the same way, so a grid grows up to the board's edge and stops at its margin.
+added at the grid's sides the same way (each point extrapolated along its own grid line, the homography
+its second chance), so a grid grows up to the board's edge and stops at its margin.
 """
 
 from __future__ import annotations
@@ -763,15 +764,15 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], level: Level, max_dim
                                         np.arange(len(keys)) < n_holes)
         start = 0
         for end, side_length, side_outward in groups:
+            first, start = start, end
             # the confirmed points of this group, found once (not tested point by point in Python)
-            sel = (np.flatnonzero(good[start:end]) + start).tolist()
+            sel = (np.flatnonzero(good[first:end]) + first).tolist()
             points = {keys[i]: refined[i] for i in sel}
             if side_outward is not None:
                 needed = max(2, 0.6 * side_length)
                 if 0 < len(points) < needed:
                     points.update(_side_points_from_homographies(
-                        dense, lo, [keys[i] for i in range(start, end) if not good[i]], hole_predictions, verified))
-                start = end
+                        dense, lo, [keys[i] for i in range(first, end) if not good[i]], hole_predictions, verified))
                 # A side line is taken only when most of it is confirmed and squares lie beyond it.
                 if len(points) < needed:
                     continue
@@ -779,7 +780,6 @@ def complete_grid(grid: dict[tuple[int, int], np.ndarray], level: Level, max_dim
                 trial.update(points)
                 if not squares_beyond_alternate(trial, list(points), side_outward, smooth, params.min_contrast):
                     continue
-            start = end
             grid.update(points)
             added = added or bool(points)
         if not added and len(holes):
