@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from edgecal.detection.board_corners import _bent_corners
+from edgecal.detection.board_corners import _kinked_corners
 from edgecal.detection.candidates import (
     _local_maxima,
     gradients,
@@ -256,7 +256,7 @@ def test_the_slide_screen_flags_a_slid_corner_not_a_lens_bend() -> None:
     dense = np.stack([100.0 + step * c + 40.0 * v ** 2 + 8.0 * v ** 4, 100.0 + step * r + 60.0 * u ** 2 + 8.0 * u ** 4],
                      axis=2)
     spacing = np.full((rows, cols), step)
-    assert not _bent_corners(dense, spacing).any()
+    assert not _kinked_corners(dense, spacing).any()
     dense[3, 4, 0] += 5.0
-    flagged = _bent_corners(dense, spacing)
+    flagged = _kinked_corners(dense, spacing)
     assert flagged[3, 4] and all(r == 3 or c == 4 for r, c in np.argwhere(flagged).tolist())

@@ -24,7 +24,7 @@ from edgecal.detection.subpixel import (
 
 # A final corner further than this fraction of a square from where its neighbours put it slid along an edge.
 SLID_FRACTION = 0.2
-# A kink (_bent_corners) of this many times the slide threshold is looked at: a slid corner's own kink is 1.5x
+# A kink (_kinked_corners) of this many times the slide threshold is looked at: a slid corner's own kink is 1.5x
 # the second difference it makes there (3d against 2d).
 KINK_FACTOR = 1.5
 # A corner the X-junction fit did not place is fitted again from where a grid line through it puts it when
@@ -154,7 +154,7 @@ def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p
     outer corner. Each corner is predicted from a local homography of its neighbours (leaving it out, all
     corners in one batch); one further than SLID_FRACTION of a square from its prediction is refined again
     from the prediction, and the new position is kept when it agrees with the prediction better. Only the
-    corners where a row or column kinks (_bent_corners) are predicted.
+    corners where a row or column kinks (_kinked_corners) are predicted.
     """
     out = np.array(xy, dtype=np.float64)
     ids = np.asarray(ids, dtype=np.int64)
@@ -169,7 +169,7 @@ def resettle_slid_corners(smooth: np.ndarray, ids: np.ndarray, xy: np.ndarray, p
     dense = np.empty((rows, cols, 2))
     for _ in range(3):  # a slid corner misleads its neighbours' predictions: repeat once it is back
         dense[ids[:, 1], ids[:, 0]] = out
-        flagged = _bent_corners(dense, dense_spacing)
+        flagged = _kinked_corners(dense, dense_spacing)
         if not flagged.any():
             break
         sel = order[flagged]
@@ -203,11 +203,12 @@ def _settled(smooth: np.ndarray, xy: np.ndarray, spacing: np.ndarray) -> np.ndar
 
 
 @njit(cache=True, nogil=True)
-def _bent_corners(dense: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+def _kinked_corners(dense: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     """(rows, cols) bool: the corners of a full grid ``dense`` (rows, cols, 2) where its row or column kinks
     by more than KINK_FACTOR x max(SLID_FRACTION x ``spacing`` (rows, cols), 1.5) px: how far the line's
     second difference there departs from its neighbours' (linear through the next two at a line's second and
-    last but one corner; a line's ends take their neighbour's). The cheap screen of resettle_slid_corners.
+    last but one corner; on a line of 3 or 4 corners the second difference itself; a line's ends take their
+    neighbour's). The cheap screen of resettle_slid_corners.
 
     A lens bends a line smoothly, so its second differences change slowly along it and cancel here, while a
     corner slid by d along an edge puts -2d into its own and d into its neighbours' (3d here, 2d at the
@@ -215,7 +216,7 @@ def _bent_corners(dense: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     three rounds on the urban fisheye set, now 70, and two corners of its view 5 that sat on their junctions
     were "resettled" 12-14 px along an edge from a homography's poor prediction there)."""
     rows, cols = dense.shape[0], dense.shape[1]
-    bend = np.zeros((rows, cols))
+    kink = np.zeros((rows, cols))
     for axis in range(2):
         n = rows if axis == 0 else cols
         m = cols if axis == 0 else rows
@@ -241,15 +242,15 @@ def _bent_corners(dense: np.ndarray, spacing: np.ndarray) -> np.ndarray:
                     ey = 2.0 * d2[n - 3, 1] - d2[n - 4, 1]
                 d = math.hypot(d2[k, 0] - ex, d2[k, 1] - ey)
                 r1, c1 = (k, j) if axis == 0 else (j, k)
-                bend[r1, c1] = max(bend[r1, c1], d)
+                kink[r1, c1] = max(kink[r1, c1], d)
                 if k == 1:
                     r0, c0 = (0, j) if axis == 0 else (j, 0)
-                    bend[r0, c0] = max(bend[r0, c0], d)
+                    kink[r0, c0] = max(kink[r0, c0], d)
                 if k == n - 2:
                     r2, c2 = (n - 1, j) if axis == 0 else (j, n - 1)
-                    bend[r2, c2] = max(bend[r2, c2], d)
+                    kink[r2, c2] = max(kink[r2, c2], d)
     out = np.zeros((rows, cols), dtype=np.bool_)
     for r in range(rows):
         for c in range(cols):
-            out[r, c] = bend[r, c] > KINK_FACTOR * max(SLID_FRACTION * spacing[r, c], 1.5)
+            out[r, c] = kink[r, c] > KINK_FACTOR * max(SLID_FRACTION * spacing[r, c], 1.5)
     return out
