@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-from edgecal.detection.completion import dense_labels, line_predictions, predict_holes
+from edgecal.detection.completion import dense_labels_of, line_predictions, predict_holes
 from edgecal.detection.line_bend import bend_shift
 from edgecal.detection.params import DetectorParams
 from edgecal.detection.subpixel import (
@@ -111,7 +111,7 @@ def _refit_from_grid_lines(grey: np.ndarray, smooth: np.ndarray, xy: np.ndarray,
     todo = np.flatnonzero(~fitted)
     if not len(todo) or fitted.sum() < 3:
         return False
-    dense, lo = dense_labels(dict(zip(map(tuple, ids[fitted].tolist()), xy[fitted])))
+    dense, lo = dense_labels_of(ids[fitted], xy[fitted])
     preds, spacing, ok = line_predictions(dense, lo, ids[todo])
     # (a start its lines put where it already is gives the same corner: most rim corners a board's cut outer
     # squares leave without a disc)

@@ -217,7 +217,12 @@ def _probe_points(h: np.ndarray, means: np.ndarray, scales: np.ndarray) -> tuple
 def dense_labels(grid: dict[tuple[int, int], np.ndarray], margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """The grid as a dense array (U, V, 2) over its labels' span plus ``margin`` on every side, NaN where a
     label is missing, and the label (u, v) of its element [0, 0]."""
-    keys, xy = grid_arrays(grid)
+    return dense_labels_of(*grid_arrays(grid), margin)
+
+
+def dense_labels_of(keys: np.ndarray, xy: np.ndarray, margin: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """dense_labels of the grid whose labels are ``keys`` (N, 2) int and points ``xy`` (N, 2) (no dict to
+    build where the arrays are at hand)."""
     lo = keys.min(axis=0) - margin
     span = keys.max(axis=0) - lo + 1 + margin
     dense = np.full((span[0], span[1], 2), np.nan)
